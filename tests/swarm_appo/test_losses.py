@@ -90,7 +90,7 @@ def test_advantage_normalisation_matches_numpy():
 
 def with_garbage_sample(batch):
     """Append a fifth sample full of values that would poison an unmasked mean."""
-    extra = dict(new_log_prob=60.0, old_log_prob=-60.0, advantages=float("nan"), values=float("inf"),
+    extra = dict(new_log_prob=400.0, old_log_prob=-400.0, advantages=float("nan"), values=float("inf"),
                  value_targets=1e30, entropy=float("nan"))
     out = {}
     for key, t in batch.items():
