@@ -1,0 +1,467 @@
+"""The training configuration: one typed dataclass tree, loaded from YAML and ``key=value`` overrides.
+
+    cfg = load_config("configs/paper.yaml", ["env.num_agents=16", "model.encoder=se3_kattention"])
+    cfg = load_config(None)              # the embedded quickstart setting (2 cores, a few minutes)
+
+A YAML file holds any subset of the tree; it is merged onto the dataclass defaults (the paper's
+algorithm hyperparameters), then the overrides are applied, then every value is type-checked and
+``validate`` checks ranges and cross-field consistency. Unknown keys, wrong types and inconsistent
+sizes raise ``ConfigError`` naming the dotted key and what is allowed.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import os
+import re
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Collection, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import yaml
+
+from quad_env.config import EnvConfig
+from swarm_appo.checkpoint import atomic_write_bytes
+
+DEVICES = ("auto", "cpu", "cuda")
+WANDB_MODES = ("offline", "online", "disabled")
+
+
+class ConfigError(ValueError):
+    """A configuration value is unknown, of the wrong type, out of range or inconsistent with another."""
+
+
+# =============================================================================================== the tree
+@dataclass
+class ModelConfig:
+    """The actor-critic (``encoders.ActorCritic``)."""
+
+    encoder: str = "deepsets"
+    """Neighbour encoder, a name in ``encoders.ENCODERS``: se3_graphormer, se3_kattention, kattention, deepsets, mlp."""
+    encoder_kwargs: Dict[str, Any] = field(default_factory=dict)
+    """Options of the chosen encoder (its constructor keywords, e.g. ``{multiplicity: 16}``); empty = its defaults."""
+    share_encoder: bool = False
+    """Actor and critic share one encoder; False (the paper, Sample Factory's default) gives each its own."""
+    head_hidden: int = 256
+    """Hidden width of the actor and critic MLP heads on top of the encoder."""
+    head_activation: str = "tanh"
+    """Nonlinearity of the heads (the paper uses tanh)."""
+    init_log_std: float = 0.0
+    """Initial log standard deviation of the Gaussian policy (learned, state-independent)."""
+
+
+@dataclass
+class AlgoConfig:
+    """APPO with V-trace. Defaults: the paper's Appendix III (Sample Factory's values where the paper is silent)."""
+
+    lr: float = 1e-4
+    """Adam learning rate."""
+    gamma: float = 0.99
+    """Discount factor."""
+    adam_betas: Tuple[float, float] = (0.9, 0.995)
+    """Adam (beta1, beta2)."""
+    adam_eps: float = 2e-6
+    """Adam epsilon."""
+    max_grad_norm: float = 5.0
+    """Global gradient-norm clipping threshold."""
+    rollout: int = 128
+    """T, time steps per fragment (the length of every trajectory the learner sees)."""
+    batch_size: int = 4096
+    """Samples (drone steps) per minibatch, i.e. ``batch_size / rollout`` whole trajectories; a multiple of rollout.
+    The learner trains once it has collected at least this many samples."""
+    num_epochs: int = 5
+    """Passes over each collected batch (PPO epochs)."""
+    ppo_clip_ratio: float = 0.2
+    """PPO clipping range epsilon of the probability ratio: [1 - eps, 1 + eps]."""
+    value_loss_coeff: float = 0.5
+    """Weight of the value loss, mean squared error to the V-trace targets."""
+    entropy_coeff: float = 0.0
+    """Weight of the entropy bonus (0: Sample Factory's quadrotor setting)."""
+    value_clip: Optional[float] = None
+    """Absolute clip range of the value change against the behaviour-time value; None = no value clipping."""
+    normalize_advantages: bool = True
+    """Standardise the advantages of each minibatch (over its valid samples)."""
+    max_policy_lag: int = 100
+    """Steps whose policy lag (learner version - behaviour version) exceeds this are masked out of the loss."""
+    vtrace_rho_clip: Optional[float] = 1.0
+    """V-trace rho-bar: clips the importance weights of the TD errors; None = no clipping."""
+    vtrace_c_clip: Optional[float] = 1.0
+    """V-trace c-bar: clips the trace-cutting coefficients; None = no clipping."""
+    vtrace_pg_rho_clip: Optional[float] = 1.0
+    """Clip of the importance weight on the policy-gradient advantage; None = no clipping."""
+
+
+@dataclass
+class RunnerConfig:
+    """Processes, budgets, devices and the run directory."""
+
+    seed: int = 0
+    """One seed drives everything (environments, sampling, initialisation); same seed, same results in serial mode."""
+    serial: bool = False
+    """Run the rollout workers in-process, one after another (no Ray): for debugging and reproducible tests."""
+    num_workers: int = 0
+    """Rollout workers (Ray actors, one core each); 0 = one per core, minus one for the learner (at least 1)."""
+    envs_per_worker: int = 2
+    """E, swarms simulated by each worker; a fragment holds E * env.num_agents trajectories."""
+    max_fragments_in_flight: int = 0
+    """Backpressure: at most this many fragments requested but not yet trained on; 0 = 2 per worker."""
+    total_agent_steps: int = 50_000_000
+    """Training budget in agent steps (one drone, one control step)."""
+    device: str = "auto"
+    """Learner device: "auto" (cuda when present, else cpu), "cpu", "cuda" or "cuda:<index>"."""
+    checkpoint_every_s: float = 600.0
+    """Seconds between checkpoints (a final one is always written at the end or on Ctrl-C)."""
+    checkpoint_every_updates: int = 0
+    """Also checkpoint every this many learner iterations; 0 = only by time."""
+    keep_checkpoints: int = 3
+    """How many of the most recent checkpoints to keep, besides best.pt."""
+    run_dir: str = "runs"
+    """Root folder of the run directories."""
+    name: Optional[str] = None
+    """Run directory name under run_dir (also the wandb run name); None = a timestamp."""
+
+
+@dataclass
+class WandbConfig:
+    """Weights & Biases logging (metrics.jsonl is always written)."""
+
+    mode: str = "offline"
+    """"offline" (a local run, upload later with ``wandb sync``), "online" or "disabled"."""
+    project: str = "swarm-appo"
+    """wandb project."""
+    entity: Optional[str] = None
+    """wandb entity (user or team); None = your default."""
+    group: Optional[str] = None
+    """wandb group, e.g. to gather the seeds of one experiment."""
+    tags: Tuple[str, ...] = ()
+    """wandb tags."""
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run needs."""
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    """The environment (``quad_env.config.EnvConfig``)."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """The actor-critic."""
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    """The learning algorithm."""
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
+    """Processes, budgets and the run directory."""
+    wandb: WandbConfig = field(default_factory=WandbConfig)
+    """Weights & Biases."""
+
+
+# The quickstart setting (load_config(None)): what differs from the defaults above.
+# configs/quickstart.yaml states the same values; a test keeps the two equal.
+QUICKSTART: Dict[str, Any] = {
+    "env": {"num_agents": 8, "scenario": "static_same_goal"},
+    "model": {"encoder": "deepsets", "encoder_kwargs": {"hidden": 64, "out_dim": 64}, "head_hidden": 64},
+    "algo": {"batch_size": 2048, "num_epochs": 2, "lr": 3e-4},
+    "runner": {"num_workers": 0, "envs_per_worker": 2, "total_agent_steps": 2_000_000,
+               "checkpoint_every_s": 120.0, "name": "quickstart"},
+}
+
+
+# =============================================================================================== YAML
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads ``1e-4`` as a float (YAML 1.1 insists on ``1.0e-4``)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                   |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                   |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                   |[-+]?\.(?:inf|Inf|INF)
+                   |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
+
+
+def yaml_load(text: str) -> Any:
+    return yaml.load(text, Loader=_Loader)
+
+
+# =============================================================================================== dict <-> tree
+def config_to_dict(cfg: Any) -> Dict[str, Any]:
+    """A plain nested dict (tuples as lists) that ``config_from_dict`` turns back into the same tree."""
+    def plain(x: Any) -> Any:
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            return {f.name: plain(getattr(x, f.name)) for f in dataclasses.fields(x)}
+        if isinstance(x, (list, tuple)):
+            return [plain(v) for v in x]
+        if isinstance(x, dict):
+            return {k: plain(v) for k, v in x.items()}
+        return x
+    return plain(cfg)
+
+
+def config_from_dict(d: Mapping[str, Any], cls: type = None, prefix: str = "") -> Any:
+    """Build a config tree (``TrainConfig`` by default) from a nested dict; missing keys keep their defaults.
+
+    Strict: an unknown key raises ConfigError naming the full dotted key and the valid keys at its level;
+    a value of the wrong type raises ConfigError naming the key, the expected type and the value.
+    Lists are accepted for tuple fields; ints for float fields; integral floats (2e6) for int fields.
+    """
+    cls = cls or TrainConfig
+    if not isinstance(d, Mapping):
+        raise ConfigError(f"config section {prefix.rstrip('.') or '<root>'!r} must be a mapping of keys to values, "
+                          f"got {_describe(d)}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    kwargs = {}
+    for key, value in d.items():
+        dotted = f"{prefix}{key}"
+        if key not in fields:
+            raise ConfigError(_unknown_key_message(dotted, str(key), list(fields), prefix))
+        kwargs[key] = _coerce(value, hints[key], dotted)
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:  # a dataclass's own __post_init__ checks
+        raise ConfigError(f"config section {prefix.rstrip('.') or '<root>'!r}: {e}") from e
+
+
+def _unknown_key_message(dotted: str, key: str, valid: List[str], prefix: str) -> str:
+    level = f"in {prefix.rstrip('.')!r}" if prefix else "at the top level"
+    close = difflib.get_close_matches(key, valid, n=1)
+    hint = f" (did you mean {prefix + close[0]!r}?)" if close else ""
+    return f"unknown config key {dotted!r}{hint}; valid keys {level}: {sorted(valid)}"
+
+
+def _describe(value: Any) -> str:
+    return f"{value!r} ({type(value).__name__})"
+
+
+def _type_name(tp: Any) -> str:
+    if isinstance(tp, type):
+        return tp.__name__
+    return str(tp).replace("typing.", "")
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """Check ``value`` against the annotation ``tp`` and convert it (lists -> tuples, int -> float, ...)."""
+    wrong = ConfigError(f"config key {key!r} expects {_type_name(tp)}, got {_describe(value)}")
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+
+    if tp is Any:
+        return copy.deepcopy(value)
+    if origin in (typing.Union, types.UnionType):
+        if value is None:
+            if type(None) in args:
+                return None
+            raise wrong
+        for option in (a for a in args if a is not type(None)):
+            try:
+                return _coerce(value, option, key)
+            except ConfigError:
+                pass
+        raise wrong
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return copy.deepcopy(value)
+        return config_from_dict(value, tp, prefix=f"{key}.")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise wrong
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise wrong
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise wrong
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise wrong
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise wrong
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"config key {key!r} expects {len(args)} values ({_type_name(tp)}), "
+                              f"got {len(value)}: {value!r}")
+        return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if origin is list or tp is list:
+        if not isinstance(value, (list, tuple)):
+            raise wrong
+        item = args[0] if args else Any
+        return [_coerce(v, item, f"{key}[{i}]") for i, v in enumerate(value)]
+    if origin is dict or tp is dict:
+        if not isinstance(value, Mapping):
+            raise wrong
+        value_type = args[1] if args else Any
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ConfigError(f"config key {key!r} expects string keys, got {_describe(k)}")
+            out[k] = _coerce(v, value_type, f"{key}.{k}")
+        return out
+    raise ConfigError(f"config key {key!r} has an unsupported annotation {tp!r}")  # a bug in the tree
+
+
+# =============================================================================================== overrides
+def parse_override(text: str) -> Tuple[str, Any]:
+    """``"a.b=value"`` -> ``("a.b", value)`` with the value read as YAML (``16``, ``1e-4``, ``true``,
+    ``null``, ``[0.9, 0.99]``, ``{multiplicity: 16}``; anything else is a string)."""
+    if not isinstance(text, str) or "=" not in text:
+        raise ConfigError(f"override {text!r} must look like key=value, e.g. env.num_agents=16")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise ConfigError(f"override {text!r} has an empty key part; expected e.g. algo.lr=1e-4")
+    try:
+        value = yaml_load(raw) if raw.strip() else None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"override {text!r}: the value is not valid YAML ({e})") from e
+    return key, value
+
+
+def apply_override(d: Dict[str, Any], key: str, value: Any) -> None:
+    """Set dotted ``key`` in the nested dict ``d`` in place; mappings are merged into mappings."""
+    parts = key.split(".")
+    node = d
+    for i, part in enumerate(parts[:-1]):
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise ConfigError(f"cannot set {key!r}: {'.'.join(parts[:i + 1])!r} is a value, not a section")
+        node = child
+    last = parts[-1]
+    if isinstance(value, Mapping) and isinstance(node.get(last), dict):
+        _deep_merge(node[last], value)
+    else:
+        node[last] = copy.deepcopy(value)
+
+
+def _deep_merge(base: Dict[str, Any], update: Mapping[str, Any]) -> Dict[str, Any]:
+    for k, v in update.items():
+        if isinstance(v, Mapping) and isinstance(base.get(k), dict):
+            _deep_merge(base[k], v)
+        else:
+            base[k] = copy.deepcopy(v)
+    return base
+
+
+# =============================================================================================== load / save
+def default_config() -> TrainConfig:
+    """The embedded quickstart setting (what ``load_config(None)`` returns)."""
+    return config_from_dict(_deep_merge(config_to_dict(TrainConfig()), QUICKSTART))
+
+
+def load_config(path: Optional[str], overrides: Sequence[str] = ()) -> TrainConfig:
+    """Load a config: the YAML file ``path`` merged onto the defaults (None: the embedded quickstart
+    setting), then the ``key=value`` overrides; type-checked and validated."""
+    if path is None:
+        d = config_to_dict(default_config())
+    else:
+        if not os.path.isfile(path):
+            raise ConfigError(f"config file not found: {path}")
+        try:
+            with open(path) as f:
+                loaded = yaml_load(f.read())
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML ({e})") from e
+        loaded = {} if loaded is None else loaded
+        if not isinstance(loaded, Mapping):
+            raise ConfigError(f"{path}: the top level must be a mapping of sections, got {_describe(loaded)}")
+        try:
+            config_from_dict(loaded)  # report errors of the file itself, naming it
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {e}") from e
+        d = _deep_merge(config_to_dict(TrainConfig()), loaded)
+    for text in overrides:
+        key, value = parse_override(text)
+        try:
+            apply_override(d, key, value)
+            config_from_dict(d)
+        except ConfigError as e:
+            raise ConfigError(f"override {text!r}: {e}") from e
+    return validate(config_from_dict(d))
+
+
+def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
+    """Write the resolved config as YAML, atomically (readable by ``load_config`` and ``yaml.safe_load``)."""
+    text = "# Resolved swarm_appo config (every key). Load with swarm_appo.config.load_config.\n"
+    text += yaml.safe_dump(config_to_dict(cfg), sort_keys=False, default_flow_style=None)
+    atomic_write_bytes(path, text.encode())
+
+
+# =============================================================================================== validation
+def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None) -> TrainConfig:
+    """Check ranges and cross-field consistency; returns ``cfg``, raises ConfigError naming the key.
+
+    ``known_encoders`` (e.g. ``encoders.ENCODERS``) lets the caller check ``model.encoder`` without this
+    module depending on the encoders package.
+    """
+    config_from_dict(config_to_dict(cfg))  # type-check trees built in code, not only loaded ones
+    try:
+        cfg.env.validate()
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
+
+    m, a, r, w = cfg.model, cfg.algo, cfg.runner, cfg.wandb
+    if not m.encoder:
+        raise ConfigError("model.encoder must name an encoder")
+    if known_encoders is not None and m.encoder not in known_encoders:
+        raise ConfigError(f"model.encoder: unknown encoder {m.encoder!r}; valid: {list(known_encoders)}")
+    _check(m.head_hidden >= 1, "model.head_hidden", "must be >= 1", m.head_hidden)
+    _check(bool(m.head_activation), "model.head_activation", "must name an activation", m.head_activation)
+
+    _check(a.lr > 0, "algo.lr", "must be > 0", a.lr)
+    _check(0 <= a.gamma <= 1, "algo.gamma", "must be in [0, 1]", a.gamma)
+    _check(all(0 <= b < 1 for b in a.adam_betas), "algo.adam_betas", "must be two numbers in [0, 1)", a.adam_betas)
+    _check(a.adam_eps > 0, "algo.adam_eps", "must be > 0", a.adam_eps)
+    _check(a.max_grad_norm > 0, "algo.max_grad_norm", "must be > 0", a.max_grad_norm)
+    _check(a.rollout >= 1, "algo.rollout", "must be >= 1", a.rollout)
+    _check(a.batch_size >= 1, "algo.batch_size", "must be >= 1", a.batch_size)
+    if a.batch_size % a.rollout:
+        lower = max(a.rollout, a.batch_size // a.rollout * a.rollout)
+        raise ConfigError(f"algo.batch_size ({a.batch_size}) must be a multiple of algo.rollout ({a.rollout}): "
+                          f"minibatches are made of whole trajectories; e.g. {lower} or {lower + a.rollout}")
+    _check(a.num_epochs >= 1, "algo.num_epochs", "must be >= 1", a.num_epochs)
+    _check(a.ppo_clip_ratio > 0, "algo.ppo_clip_ratio", "must be > 0", a.ppo_clip_ratio)
+    _check(a.value_loss_coeff >= 0, "algo.value_loss_coeff", "must be >= 0", a.value_loss_coeff)
+    _check(a.entropy_coeff >= 0, "algo.entropy_coeff", "must be >= 0", a.entropy_coeff)
+    _check(a.value_clip is None or a.value_clip > 0, "algo.value_clip", "must be > 0 or null", a.value_clip)
+    _check(a.max_policy_lag >= 0, "algo.max_policy_lag", "must be >= 0", a.max_policy_lag)
+    for name in ("vtrace_rho_clip", "vtrace_c_clip", "vtrace_pg_rho_clip"):
+        value = getattr(a, name)
+        _check(value is None or value > 0, f"algo.{name}", "must be > 0 or null", value)
+
+    _check(r.seed >= 0, "runner.seed", "must be >= 0", r.seed)
+    _check(r.num_workers >= 0, "runner.num_workers", "must be >= 0 (0 = one per core)", r.num_workers)
+    _check(r.envs_per_worker >= 1, "runner.envs_per_worker", "must be >= 1", r.envs_per_worker)
+    _check(r.max_fragments_in_flight >= 0, "runner.max_fragments_in_flight", "must be >= 0 (0 = 2 per worker)",
+           r.max_fragments_in_flight)
+    if r.num_workers and r.max_fragments_in_flight and r.max_fragments_in_flight < r.num_workers:
+        raise ConfigError(f"runner.max_fragments_in_flight ({r.max_fragments_in_flight}) is below runner.num_workers "
+                          f"({r.num_workers}): some workers could never run; use >= {r.num_workers} or 0 (auto)")
+    _check(r.total_agent_steps >= 1, "runner.total_agent_steps", "must be >= 1", r.total_agent_steps)
+    _check(r.device in DEVICES or re.fullmatch(r"cuda:\d+", r.device) is not None, "runner.device",
+           f"must be one of {list(DEVICES)} or 'cuda:<index>'", r.device)
+    _check(r.checkpoint_every_s >= 0, "runner.checkpoint_every_s", "must be >= 0", r.checkpoint_every_s)
+    _check(r.checkpoint_every_updates >= 0, "runner.checkpoint_every_updates", "must be >= 0 (0 = off)",
+           r.checkpoint_every_updates)
+    _check(r.keep_checkpoints >= 1, "runner.keep_checkpoints", "must be >= 1", r.keep_checkpoints)
+    _check(bool(r.run_dir), "runner.run_dir", "must be a folder", r.run_dir)
+    if r.name is not None:
+        _check(bool(r.name) and "/" not in r.name and "\\" not in r.name and r.name not in (".", ".."),
+               "runner.name", "must be a plain folder name (no path separators) or null", r.name)
+
+    _check(w.mode in WANDB_MODES, "wandb.mode", f"must be one of {list(WANDB_MODES)}", w.mode)
+    _check(bool(w.project), "wandb.project", "must not be empty", w.project)
+    return cfg
+
+
+def _check(ok: bool, key: str, requirement: str, value: Any) -> None:
+    if not ok:
+        raise ConfigError(f"{key} {requirement}, got {value!r}")

@@ -1,0 +1,212 @@
+"""Config tree: defaults, YAML files, overrides, strict errors, save/load round trip, validation."""
+import ast
+import inspect
+from pathlib import Path
+
+import pytest
+import yaml
+
+import swarm_appo.config as config_module
+from quad_env.config import EnvConfig
+from swarm_appo.config import (AlgoConfig, ConfigError, TrainConfig, config_from_dict, config_to_dict,
+                               default_config, load_config, parse_override, save_config, validate)
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+QUICKSTART_YAML = str(REPO_ROOT / "configs" / "quickstart.yaml")
+PAPER_YAML = str(REPO_ROOT / "configs" / "paper.yaml")
+
+
+def test_algorithm_defaults_are_the_papers():
+    a = AlgoConfig()
+    assert (a.lr, a.gamma, a.adam_betas, a.adam_eps, a.max_grad_norm) == (1e-4, 0.99, (0.9, 0.995), 2e-6, 5.0)
+    assert (a.rollout, a.batch_size, a.num_epochs) == (128, 4096, 5)
+    assert a.value_clip is None
+    cfg = TrainConfig()
+    assert isinstance(cfg.env, EnvConfig) and cfg.model.encoder == "deepsets" and cfg.wandb.mode == "offline"
+    assert cfg.wandb.project == "swarm-appo" and cfg.runner.run_dir == "runs" and cfg.runner.device == "auto"
+
+
+def test_paper_yaml_is_appendix_iii():
+    cfg = load_config(PAPER_YAML)
+    a = cfg.algo
+    assert a.lr == 1e-4 and a.gamma == 0.99 and a.adam_betas == (0.9, 0.995) and a.adam_eps == 2e-6
+    assert a.max_grad_norm == 5.0 and a.rollout == 128 and a.batch_size == 4096 and a.num_epochs == 5
+    assert cfg.model.encoder == "se3_graphormer" and cfg.model.head_activation == "tanh"
+    assert cfg.env.num_agents == 8
+
+
+def test_quickstart_yaml_equals_the_embedded_default():
+    embedded = load_config(None)
+    assert load_config(QUICKSTART_YAML) == embedded == default_config()
+    assert embedded.algo.batch_size % embedded.algo.rollout == 0 and embedded.env.num_agents == 8
+    assert embedded.algo.batch_size < AlgoConfig().batch_size  # it is the small setting
+
+
+def test_every_field_has_a_docstring():
+    tree = ast.parse(inspect.getsource(config_module))
+    classes = {n.name: n for n in tree.body if isinstance(n, ast.ClassDef)}
+    for cls in (config_module.ModelConfig, config_module.AlgoConfig, config_module.RunnerConfig,
+                config_module.WandbConfig, config_module.TrainConfig):
+        body = classes[cls.__name__].body
+        for i, node in enumerate(body):
+            if isinstance(node, ast.AnnAssign):
+                nxt = body[i + 1] if i + 1 < len(body) else None
+                documented = isinstance(nxt, ast.Expr) and isinstance(getattr(nxt, "value", None), ast.Constant)
+                assert documented, f"{cls.__name__}.{node.target.id} has no docstring"
+
+
+@pytest.mark.parametrize("text, key, value", [
+    ("env.num_agents=16", "env.num_agents", 16),
+    ("algo.lr=1e-4", "algo.lr", 1e-4),
+    ("algo.lr=3.0e-4", "algo.lr", 3e-4),
+    ("runner.serial=true", "runner.serial", True),
+    ("algo.value_clip=null", "algo.value_clip", None),
+    ("algo.adam_betas=[0.9, 0.99]", "algo.adam_betas", [0.9, 0.99]),
+    ("model.encoder_kwargs={multiplicity: 16}", "model.encoder_kwargs", {"multiplicity": 16}),
+    ("model.encoder=se3_graphormer", "model.encoder", "se3_graphormer"),
+    ("runner.name=a=b", "runner.name", "a=b"),
+])
+def test_parse_override_reads_yaml_values(text, key, value):
+    assert parse_override(text) == (key, value)
+
+
+@pytest.mark.parametrize("text", ["env.num_agents", "=3", "env..num_agents=3", "env.=3"])
+def test_malformed_overrides_are_errors(text):
+    with pytest.raises(ConfigError, match="override"):
+        parse_override(text)
+
+
+def test_overrides_apply_with_types():
+    cfg = load_config(None, ["env.num_agents=16", "algo.lr=1e-3", "algo.adam_betas=[0.8, 0.9]",
+                             "env.reward.pos=1", "runner.total_agent_steps=5e6", "wandb.tags=[a, b]",
+                             "model.encoder_kwargs.out_dim=32", "env.sensing_radius=2"])
+    assert cfg.env.num_agents == 16 and cfg.algo.lr == 1e-3 and cfg.algo.adam_betas == (0.8, 0.9)
+    assert cfg.env.reward.pos == 1.0 and isinstance(cfg.env.reward.pos, float)
+    assert cfg.runner.total_agent_steps == 5_000_000 and isinstance(cfg.runner.total_agent_steps, int)
+    assert cfg.wandb.tags == ("a", "b")
+    assert cfg.model.encoder_kwargs == {"hidden": 64, "out_dim": 32}  # merged into the quickstart options
+    assert cfg.env.sensing_radius == 2.0
+    # Later overrides win; the other fields keep the file's values.
+    cfg = load_config(PAPER_YAML, ["algo.lr=1e-3", "algo.lr=2e-3"])
+    assert cfg.algo.lr == 2e-3 and cfg.algo.batch_size == 4096
+
+
+@pytest.mark.parametrize("override, fragments", [
+    ("algo.lrr=1", ["'algo.lrr'", "did you mean 'algo.lr'", "'adam_betas'", "'vtrace_c_clip'"]),
+    ("env.reward.poss=1", ["'env.reward.poss'", "valid keys in 'env.reward'", "'proximity_dist'"]),
+    ("env.physics.masss=1", ["'env.physics.masss'", "'mass'"]),
+    ("foo.bar=1", ["'foo'", "top level", "'runner'", "'wandb'"]),
+    ("algo.lr.x=2", ["'algo.lr' is a value, not a section"]),
+])
+def test_unknown_keys_name_the_dotted_key_and_the_valid_ones(override, fragments):
+    with pytest.raises(ConfigError) as info:
+        load_config(None, [override])
+    for fragment in fragments:
+        assert fragment in str(info.value)
+
+
+@pytest.mark.parametrize("override, fragments", [
+    ("algo.lr=abc", ["'algo.lr'", "float", "'abc'"]),
+    ("env.num_agents=2.5", ["'env.num_agents'", "int", "2.5"]),
+    ("env.num_agents=true", ["'env.num_agents'", "int", "True"]),
+    ("runner.serial=1", ["'runner.serial'", "bool", "1"]),
+    ("algo.value_clip=yes", ["'algo.value_clip'", "Optional[float]", "True"]),
+    ("algo.adam_betas=[0.9]", ["'algo.adam_betas'", "2 values", "[0.9]"]),
+    ("algo.adam_betas=0.9", ["'algo.adam_betas'", "Tuple[float, float]"]),
+    ("model.encoder_kwargs=3", ["'model.encoder_kwargs'", "Dict"]),
+    ("wandb.tags=[1]", ["'wandb.tags[0]'", "str"]),
+    ("env.physics.inertia=[1, 2]", ["'env.physics.inertia'", "3 values"]),
+    ("env.reward=5", ["'env.reward'", "mapping"]),
+])
+def test_wrong_types_name_key_expected_type_and_value(override, fragments):
+    with pytest.raises(ConfigError) as info:
+        load_config(None, [override])
+    for fragment in fragments:
+        assert fragment in str(info.value), (fragment, str(info.value))
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("algo.batch_size=1000", "algo.batch_size (1000) must be a multiple of algo.rollout (128)"),
+    ("algo.gamma=1.5", "algo.gamma"),
+    ("algo.lr=0", "algo.lr"),
+    ("algo.adam_betas=[0.9, 1.0]", "algo.adam_betas"),
+    ("algo.value_clip=-1", "algo.value_clip"),
+    ("algo.vtrace_c_clip=0", "algo.vtrace_c_clip"),
+    ("runner.device=tpu", "runner.device"),
+    ("wandb.mode=sometimes", "wandb.mode must be one of ['offline', 'online', 'disabled']"),
+    ("runner.name=a/b", "runner.name"),
+    ("runner.keep_checkpoints=0", "runner.keep_checkpoints"),
+    ("env.num_agents=0", "env.num_agents"),
+    ("env.neighbor_obs=radar", "env.neighbor_obs"),
+])
+def test_out_of_range_values_are_errors_naming_the_key(override, fragment):
+    with pytest.raises(ConfigError) as info:
+        load_config(None, [override])
+    assert fragment in str(info.value)
+
+
+def test_inconsistent_worker_settings():
+    with pytest.raises(ConfigError, match="max_fragments_in_flight.*num_workers"):
+        load_config(None, ["runner.num_workers=4", "runner.max_fragments_in_flight=2"])
+    assert load_config(None, ["runner.num_workers=4", "runner.max_fragments_in_flight=4"]).runner.num_workers == 4
+    assert load_config(None, ["runner.device=cuda:1"]).runner.device == "cuda:1"
+
+
+def test_validate_checks_encoder_names_when_given():
+    cfg = load_config(None, ["model.encoder=transformer"])  # not checked without a registry
+    with pytest.raises(ConfigError, match=r"unknown encoder 'transformer'; valid: \['deepsets', 'mlp'\]"):
+        validate(cfg, known_encoders=["deepsets", "mlp"])
+    assert validate(load_config(None), known_encoders=["deepsets"]).model.encoder == "deepsets"
+
+
+def test_validate_type_checks_trees_built_in_code():
+    cfg = TrainConfig(algo=AlgoConfig(lr="fast"))
+    with pytest.raises(ConfigError, match="'algo.lr' expects float"):
+        validate(cfg)
+
+
+def test_dict_round_trip_and_strictness():
+    cfg = load_config(PAPER_YAML, ["model.encoder_kwargs={multiplicity: 16}", "wandb.tags=[x]"])
+    d = config_to_dict(cfg)
+    assert d["algo"]["adam_betas"] == [0.9, 0.995] and d["env"]["reward"]["pos"] == 0.5
+    assert config_from_dict(d) == cfg
+    assert config_from_dict({}) == TrainConfig()
+    d["runner"]["bogus"] = 1
+    with pytest.raises(ConfigError, match="'runner.bogus'"):
+        config_from_dict(d)
+    with pytest.raises(ConfigError, match="mapping"):
+        config_from_dict([1, 2])
+
+
+def test_save_config_round_trips_through_yaml(tmp_path):
+    cfg = load_config(PAPER_YAML, ["env.sensing_radius=1.5", "algo.value_clip=0.2", "wandb.tags=[a]",
+                                   "model.encoder_kwargs={multiplicity: 8}"])
+    path = tmp_path / "run" / "config.yaml"
+    save_config(cfg, path)
+    assert sorted(p.name for p in path.parent.iterdir()) == ["config.yaml"]  # no temp file left
+    assert load_config(str(path)) == cfg
+    assert config_from_dict(yaml.safe_load(path.read_text())) == cfg  # plain YAML readers work too
+    save_config(load_config(None), path)  # replaced atomically
+    assert load_config(str(path)) == load_config(None)
+
+
+def test_file_errors_name_the_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(str(tmp_path / "missing.yaml"))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("algo:\n  learning_rate: 0.1\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml.*'algo.learning_rate'"):
+        load_config(str(bad))
+    bad.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="bad.yaml.*mapping"):
+        load_config(str(bad))
+    bad.write_text("algo: {lr: [\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(str(bad))
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    assert load_config(str(empty)) == TrainConfig()
+
+
+def test_config_error_is_a_value_error():
+    assert issubclass(ConfigError, ValueError)
