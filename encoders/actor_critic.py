@@ -1,0 +1,94 @@
+"""Actor-critic of paper section 6: pi(u | s, o) = h_p(pi_hat(s, o)), a diagonal Gaussian.
+
+pi_hat is any registered encoder (for the SE(3) ones: the equivariant part, whose output is in world
+axes); h_p is a plain MLP [(out_dim, 256), (256, action_dim)] giving the Gaussian's mean, with a learned
+state-independent log-std. Because h_p sees the equivariant features in world axes, the policy as a whole
+is not equivariant -- which it must not be, as gravity breaks the symmetry of the dynamics. The critic has
+the same structure ([(out_dim, 256), (256, 1)]) and its own encoder unless ``share_encoder``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional, Tuple
+
+import torch
+from torch import nn
+
+from quad_env.obs_layout import ObsLayout
+
+from .common import mlp, xavier_init_
+from .registry import make_encoder
+
+HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def gaussian_log_prob(mean: torch.Tensor, log_std: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """Log-density of a diagonal Gaussian, summed over the action dim: [B, A] -> [B]."""
+    z = (actions - mean) * torch.exp(-log_std)
+    return (-0.5 * z.pow(2) - log_std - HALF_LOG_2PI).sum(-1)
+
+
+class ActorCritic(nn.Module):
+    """Gaussian policy and value function on top of a named encoder.
+
+    Args:
+        layout: observation layout.
+        encoder: registered encoder name (see ``encoders.ENCODERS``).
+        encoder_kwargs: options passed to the encoder (e.g. ``{"multiplicity": 16}``).
+        share_encoder: actor and critic use one encoder (the paper: separate weights, the default).
+        action_dim: size of the action (4 rotor commands).
+        head_hidden: hidden width of the actor and critic heads (paper 256).
+        head_activation: nonlinearity of the heads.
+        init_log_std: initial value of the learned log standard deviation.
+    """
+
+    def __init__(self, layout: ObsLayout, encoder: str = "deepsets", encoder_kwargs: Optional[dict] = None,
+                 share_encoder: bool = False, action_dim: int = 4, head_hidden: int = 256,
+                 head_activation: str = "tanh", init_log_std: float = 0.0):
+        super().__init__()
+        encoder_kwargs = dict(encoder_kwargs or {})
+        self.layout = layout
+        self.config = dict(encoder=encoder, encoder_kwargs=encoder_kwargs, share_encoder=share_encoder,
+                           action_dim=action_dim, head_hidden=head_hidden, head_activation=head_activation,
+                           init_log_std=init_log_std)
+        self.share_encoder = share_encoder
+        self.action_dim = action_dim
+        self.actor_encoder = make_encoder(encoder, layout, **encoder_kwargs)
+        self.critic_encoder = None if share_encoder else make_encoder(encoder, layout, **encoder_kwargs)
+        out_dim = self.actor_encoder.out_dim
+        self.actor_head = xavier_init_(mlp([out_dim, head_hidden, action_dim], head_activation, last_act=False))
+        self.critic_head = xavier_init_(mlp([out_dim, head_hidden, 1], head_activation, last_act=False))
+        self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
+
+    # ------------------------------------------------------------------ pieces
+    def _features(self, obs: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        actor = self.actor_encoder(obs)  # [B, out_dim]
+        critic = actor if self.critic_encoder is None else self.critic_encoder(obs)
+        return actor, critic
+
+    def get_value(self, obs: torch.Tensor) -> torch.Tensor:
+        """V(obs): [B]."""
+        encoder = self.actor_encoder if self.critic_encoder is None else self.critic_encoder
+        return self.critic_head(encoder(obs)).squeeze(-1)
+
+    def forward(self, obs: torch.Tensor):
+        """``(mean [B, A], log_std [A], value [B])``."""
+        actor, critic = self._features(obs)
+        return self.actor_head(actor), self.log_std, self.critic_head(critic).squeeze(-1)
+
+    # ------------------------------------------------------------------ RL interface
+    def act(self, obs: torch.Tensor, deterministic: bool = False, generator: Optional[torch.Generator] = None):
+        """Sample (or take the mean of) the unclipped Gaussian: ``(actions [B, A], log_prob [B], value [B])``."""
+        mean, log_std, value = self(obs)
+        if deterministic:
+            actions = mean
+        else:
+            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+            actions = mean + noise * torch.exp(log_std)
+        return actions, gaussian_log_prob(mean, log_std, actions), value
+
+    def evaluate(self, obs: torch.Tensor, actions: torch.Tensor):
+        """``(log_prob [B], entropy [B], value [B])`` of given actions."""
+        mean, log_std, value = self(obs)
+        entropy = (0.5 + HALF_LOG_2PI + log_std).sum().expand(mean.shape[0])
+        return gaussian_log_prob(mean, log_std, actions), entropy, value

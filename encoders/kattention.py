@@ -1,0 +1,98 @@
+"""K-Attention (QuadSwarm / Batra et al. CoRL 2021) and its SE(3)-canonicalized version.
+
+Per neighbour j of drone i: embedding e_j = MLP([s_i, o_j]), value h_j = MLP(e_j), score
+a_j = MLP([e_j, mean_k e_k]); softmax of the scores over the real neighbours weights the values.
+A self MLP (256-256 tanh) and the attended neighbourhood are joined by a 512-wide tanh layer.
+
+The self state is broadcast to each neighbour *of the same sample* ([B, K, S]); the reference
+implementation tiles the whole batch instead (``repeat``), pairing sample b's neighbours with other
+samples' states, which is a bug we do not reproduce.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from quad_env.obs_layout import ObsLayout
+
+from .common import flat_inputs, masked_mean, masked_softmax, mlp, read_obs, self_input_dim, xavier_init_
+from .frames import canonicalize, own_rotation, typed_to_world
+
+
+class KAttention(nn.Module):
+    """The unconstrained K-Attention network on ``(self_x [B, S], neighbors [B, K, F], mask [B, K])``."""
+
+    def __init__(self, self_dim: int, neighbor_dim: int, hidden: int, out_dim: int, activation: str):
+        super().__init__()
+        self.self_mlp = mlp([self_dim, hidden, hidden], activation)
+        self.embed = mlp([self_dim + neighbor_dim, hidden, hidden], activation)
+        self.value = mlp([hidden, hidden, hidden], activation)
+        self.score = mlp([2 * hidden, hidden, hidden, 1], activation, last_act=False)
+        self.join = mlp([2 * hidden, out_dim], activation)
+
+    def forward(self, self_x: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        B, K, _ = nb.shape
+        pairs = torch.cat([self_x.unsqueeze(1).expand(B, K, self_x.shape[-1]), nb], dim=-1)  # [B, K, S+F]
+        e = self.embed(pairs)  # [B, K, H]
+        e_mean = masked_mean(e, mask, dim=1)  # [B, H]
+        scores = self.score(torch.cat([e, e_mean.unsqueeze(1).expand_as(e)], dim=-1)).squeeze(-1)  # [B, K]
+        weights = masked_softmax(scores, mask)  # [B, K]; all zero without neighbours
+        neighborhood = (weights.unsqueeze(-1) * self.value(e)).sum(dim=1)  # [B, H]
+        return self.join(torch.cat([self.self_mlp(self_x), neighborhood], dim=-1))  # [B, out_dim]
+
+
+class KAttentionEncoder(nn.Module):
+    """K-Attention baseline on world-frame observations.
+
+    Args:
+        layout: observation layout.
+        hidden: width of the self, embedding, value and score MLPs.
+        out_dim: width of the joining layer.
+        activation: nonlinearity.
+    """
+
+    equivariance = None
+
+    def __init__(self, layout: ObsLayout, hidden: int = 256, out_dim: int = 512, activation: str = "tanh"):
+        super().__init__()
+        self.layout = layout
+        self.out_dim = out_dim
+        self.net = KAttention(self_input_dim(layout), layout.neighbor_dim, hidden, out_dim, activation)
+        xavier_init_(self)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(*flat_inputs(self.layout, read_obs(self.layout, obs)))
+
+
+class SE3KAttentionEncoder(nn.Module):
+    """K-Attention made SE(3)-equivariant by canonicalization (paper, Lemma 1).
+
+    All inputs are expressed in drone i's frame (world vectors by R_i^T, rotations R_i^T R_j), the
+    K-Attention network runs there, and its output, typed as ``out_dim - 3 * out_vectors`` scalars plus
+    ``out_vectors`` 3-vectors, is mapped back to the world by R_i.
+
+    Args:
+        layout: observation layout.
+        hidden: width of the K-Attention MLPs.
+        out_dim: output width (scalars + 3 x vectors).
+        out_vectors: how many of the outputs are 3-vectors.
+        activation: nonlinearity.
+    """
+
+    def __init__(self, layout: ObsLayout, hidden: int = 256, out_dim: int = 512, out_vectors: int = 128,
+                 activation: str = "tanh"):
+        super().__init__()
+        if not 0 <= 3 * out_vectors <= out_dim:
+            raise ValueError(f"out_vectors={out_vectors} needs 0 <= 3 * out_vectors <= out_dim={out_dim}")
+        self.layout = layout
+        self.out_dim = out_dim
+        self.out_vectors = out_vectors
+        self.equivariance = (out_dim - 3 * out_vectors, out_vectors)
+        self.net = KAttention(self_input_dim(layout), layout.neighbor_dim, hidden, out_dim, activation)
+        xavier_init_(self)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        fields = read_obs(self.layout, obs)
+        R = own_rotation(fields)  # [B, 3, 3]
+        out = self.net(*flat_inputs(self.layout, canonicalize(self.layout, fields, R)))  # [B, out_dim], frame i
+        return typed_to_world(out, R, self.out_vectors)
