@@ -1,0 +1,286 @@
+"""Metrics: one JSON line per record in ``run_dir/metrics.jsonl`` and the same record in wandb.
+
+Every record is keyed by ``global_step`` (agent steps: one drone, one control step) and holds metrics
+named ``<group>/<name>``; the groups are fixed (``METRIC_GROUPS``) and the standard names are listed in
+``METRICS`` with their meaning. ``metrics.jsonl`` is enough for tests and plots; wandb runs offline by
+default (``wandb sync run_dir/wandb/offline-run-*`` uploads later). Non-finite numbers are written to
+the JSON file as ``null`` (strict JSON).
+
+On resume the wandb run id is read back from ``run_dir/wandb_id.txt`` (or given), so the resumed run
+continues the same wandb run; records past the resumed step are dropped from ``metrics.jsonl``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import resource
+import sys
+import time
+import uuid
+import warnings
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional, Sequence
+
+import numpy as np
+
+from swarm_appo.checkpoint import atomic_write_bytes
+
+METRICS_FILE = "metrics.jsonl"
+WANDB_ID_FILE = "wandb_id.txt"
+STEP_KEY = "global_step"
+WANDB_MODES = ("offline", "online", "disabled")
+
+METRIC_GROUPS = ("charts", "swarm", "losses", "lag", "perf", "system")
+
+METRICS: Dict[str, str] = {
+    # charts/: training progress
+    "charts/episode_reward": "mean return per drone of the episodes that ended since the last record",
+    "charts/episode_length": "mean length (control steps) of those episodes",
+    "charts/episodes": "number of those episodes",
+    "charts/sps": "agent steps per second since the last record",
+    "charts/elapsed_s": "wall time since the start of this process",
+    # swarm/: the paper's evaluation metrics, also per scenario as swarm/<scenario>/<name> (swarm_metric)
+    "swarm/dist": "Dist: mean distance of a drone to its goal (m)",
+    "swarm/collisions": "Col: collisions (with the environment or other drones) per episode",
+    "swarm/success_rate": "Suc %: share of drones that stay near their goal without colliding (%)",
+    "swarm/inter_collision_rate": "IColR: inter-agent (drone-drone) collision rate",
+    # losses/: the learner (means over the minibatches of one learner iteration)
+    "losses/policy_loss": "clipped-surrogate loss",
+    "losses/value_loss": "value loss (squared error to the V-trace targets)",
+    "losses/entropy": "policy entropy",
+    "losses/approx_kl": "approximate KL(behaviour || current), mean((r - 1) - log r)",
+    "losses/clip_fraction": "share of samples whose probability ratio left the clip range",
+    "losses/explained_variance": "explained variance of the V-trace targets by the critic",
+    "losses/total_loss": "the optimised loss",
+    "losses/valid_fraction": "share of samples not masked out (policy lag within algo.max_policy_lag)",
+    "losses/grad_norm": "global gradient norm before clipping",
+    "losses/skipped_updates": "updates skipped because of a non-finite loss or gradient (cumulative)",
+    # lag/: policy lag = learner version - behaviour version, per trained step (LagStats)
+    "lag/min": "smallest policy lag", "lag/mean": "mean policy lag", "lag/max": "largest policy lag",
+    "lag/masked_fraction": "share of steps masked out for exceeding algo.max_policy_lag",
+    # perf/: throughput and where the time goes
+    "perf/agent_steps_per_s": "agent steps per second (same as charts/sps)",
+    "perf/learner_samples_per_s": "samples per second of learner compute",
+    "perf/env_share": "share of rollout-worker time spent stepping the simulator",
+    "perf/inference_share": "share of rollout-worker time spent in policy inference",
+    "perf/transfer_share": "share of learner-loop time spent waiting for fragments and publishing weights",
+    "perf/learner_share": "share of learner-loop time spent training",
+    "perf/policy_version": "learner policy version (bumped once per learner iteration)",
+    "perf/num_updates": "optimizer steps taken",
+    "perf/worker_restarts": "rollout workers replaced after dying (cumulative)",
+    # system/: resources of the learner process (system_metrics)
+    "system/rss_mb": "resident memory of the learner process (MiB)",
+    "system/max_rss_mb": "peak resident memory of the learner process (MiB)",
+}
+
+
+def swarm_metric(scenario: str, name: str) -> str:
+    """Per-scenario name of a swarm metric, e.g. ``swarm_metric("swap_goals", "dist")`` -> ``swarm/swap_goals/dist``."""
+    return f"swarm/{scenario}/{name}"
+
+
+# ----------------------------------------------------------------------------------------------- lag
+class LagStats:
+    """Accumulates per-step policy lags (learner version - behaviour version) -> min / mean / max.
+
+    ``update`` takes any array-like of lags (numpy, torch, list); NaN statistics mean "no step seen".
+    With ``max_policy_lag`` it also counts the steps that exceed it (``masked_fraction``).
+    """
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self.count = 0
+        self.total = 0.0
+        self._min = math.inf
+        self._max = -math.inf
+        self.over_limit = 0
+
+    def update(self, lags: Any, max_policy_lag: Optional[int] = None) -> None:
+        if hasattr(lags, "detach"):  # torch tensor
+            lags = lags.detach().cpu().numpy()
+        lags = np.asarray(lags, dtype=np.float64).ravel()
+        if lags.size == 0:
+            return
+        self.count += lags.size
+        self.total += float(lags.sum())
+        self._min = min(self._min, float(lags.min()))
+        self._max = max(self._max, float(lags.max()))
+        if max_policy_lag is not None:
+            self.over_limit += int((lags > max_policy_lag).sum())
+
+    @property
+    def min(self) -> float:
+        return self._min if self.count else math.nan
+
+    @property
+    def max(self) -> float:
+        return self._max if self.count else math.nan
+
+    @property
+    def mean(self) -> float:
+        return self.total / self.count if self.count else math.nan
+
+    @property
+    def masked_fraction(self) -> float:
+        return self.over_limit / self.count if self.count else math.nan
+
+    def summary(self) -> Dict[str, float]:
+        """``{"lag/min", "lag/mean", "lag/max", "lag/masked_fraction"}``."""
+        return {"lag/min": self.min, "lag/mean": self.mean, "lag/max": self.max,
+                "lag/masked_fraction": self.masked_fraction}
+
+
+# ----------------------------------------------------------------------------------------------- system
+def system_metrics() -> Dict[str, float]:
+    """Memory of this process: ``system/rss_mb`` (current, Linux only) and ``system/max_rss_mb`` (peak)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    out = {"system/max_rss_mb": peak / (2**20 if sys.platform == "darwin" else 2**10)}
+    try:
+        with open("/proc/self/statm") as f:
+            out["system/rss_mb"] = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        pass
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- logger
+def _step_of_line(line: bytes) -> float:
+    try:
+        return json.loads(line).get(STEP_KEY, 0)
+    except ValueError:
+        return math.inf  # unreadable: dropped when trimming to a resume step
+def _plain(value: Any, key: str) -> Any:
+    """A JSON-able scalar from numbers, numpy/torch scalars, bools and strings."""
+    if hasattr(value, "detach"):  # torch tensor
+        value = value.detach().cpu()
+        if value.numel() != 1:
+            raise ValueError(f"metric {key!r} must be a scalar, got a tensor of shape {tuple(value.shape)}")
+        value = value.item()
+    if isinstance(value, np.ndarray):
+        if value.size != 1:
+            raise ValueError(f"metric {key!r} must be a scalar, got an array of shape {value.shape}")
+        value = value.item()
+    if isinstance(value, np.generic):
+        value = value.item()
+    if value is None or isinstance(value, (bool, str, int, float)):
+        return value
+    raise TypeError(f"metric {key!r} must be a number, bool or string, got {type(value).__name__}")
+
+
+class MetricsLogger:
+    """Writes metric records to ``run_dir/metrics.jsonl`` and to a wandb run.
+
+    Args:
+        run_dir: the run directory (created if needed).
+        cfg_dict: the resolved config as a plain dict (stored as the wandb run config).
+        wandb_mode: "offline" (default), "online" or "disabled" (no wandb at all, no wandb files).
+        project: wandb project.
+        run_name: wandb run name (default: the run directory's name).
+        resume_id: wandb run id to continue; default: the id in ``run_dir/wandb_id.txt`` if present, else new.
+        entity, group, tags: wandb entity, group and tags.
+        resume_step: when resuming from a checkpoint at this global step, records logged after it (by the
+            run that died) are dropped from ``metrics.jsonl`` so the file has one record per step.
+    """
+
+    def __init__(self, run_dir: str | os.PathLike, cfg_dict: Mapping[str, Any], wandb_mode: str = "offline",
+                 project: str = "swarm-appo", run_name: Optional[str] = None, resume_id: Optional[str] = None,
+                 entity: Optional[str] = None, group: Optional[str] = None, tags: Sequence[str] = (),
+                 resume_step: Optional[int] = None):
+        if wandb_mode not in WANDB_MODES:
+            raise ValueError(f"wandb_mode must be one of {list(WANDB_MODES)}, got {wandb_mode!r}")
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.run_dir / METRICS_FILE
+        self._repair_jsonl(resume_step)
+        self._file = open(self.path, "a", encoding="utf-8")
+        self._warned_keys: set = set()
+        self._wandb_run = None
+        self.run_id: Optional[str] = None
+        if wandb_mode != "disabled":
+            self._start_wandb(cfg_dict, wandb_mode, project, run_name or self.run_dir.name, resume_id, entity,
+                              group, tags)
+
+    # ------------------------------------------------------------------ wandb
+    def _start_wandb(self, cfg_dict, mode, project, run_name, resume_id, entity, group, tags) -> None:
+        import wandb  # imported only when used: it is slow to import
+
+        id_file = self.run_dir / WANDB_ID_FILE
+        if resume_id is None and id_file.exists():
+            resume_id = id_file.read_text().strip() or None
+        self.run_id = resume_id or uuid.uuid4().hex[:12]  # not from `random`: seeded runs stay reproducible
+        atomic_write_bytes(id_file, (self.run_id + "\n").encode())
+        try:
+            self._wandb_run = wandb.init(
+                dir=str(self.run_dir), id=self.run_id, resume="allow", mode=mode, project=project, entity=entity,
+                group=group, tags=list(tags) or None, name=run_name, config=dict(cfg_dict),
+                settings=wandb.Settings(console="off"))  # leave stdout/stderr (progress bar) alone
+        except Exception as e:  # e.g. "online" without a network: keep training, keep metrics.jsonl
+            warnings.warn(f"wandb ({mode}) failed to start: {e}; metrics go to {self.path} only", RuntimeWarning)
+            return
+        # Plot everything against agent steps; wandb's own step counter would reject a resumed run's steps.
+        self._wandb_run.define_metric(STEP_KEY)
+        self._wandb_run.define_metric("*", step_metric=STEP_KEY)
+
+    # ------------------------------------------------------------------ jsonl
+    def _repair_jsonl(self, resume_step: Optional[int]) -> None:
+        """Drop a half-written last line (the process died mid-write) and records past ``resume_step``."""
+        if not self.path.exists():
+            return
+        raw = self.path.read_bytes()
+        lines = raw.split(b"\n")
+        complete = lines[:-1]  # the part after the last newline is empty or a torn record
+        if resume_step is not None:
+            complete = [ln for ln in complete if ln.strip() and _step_of_line(ln) <= resume_step]
+        repaired = b"".join(ln + b"\n" for ln in complete)
+        if repaired != raw:
+            atomic_write_bytes(self.path, repaired)
+
+    def log(self, step: int, metrics: Mapping[str, Any]) -> Dict[str, Any]:
+        """Write one record at ``global_step = step``; returns the record as written to the JSON file."""
+        record: Dict[str, Any] = {STEP_KEY: int(step), "time": time.time()}
+        for key, value in metrics.items():
+            if key in (STEP_KEY, "time"):
+                raise ValueError(f"metric name {key!r} is reserved")
+            self._check_name(key)
+            record[key] = _plain(value, key)
+        json_record = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in record.items()}
+        self._file.write(json.dumps(json_record) + "\n")
+        self._file.flush()
+        if self._wandb_run is not None:
+            self._wandb_run.log({k: v for k, v in record.items() if k != "time" and v is not None})
+        return json_record
+
+    def _check_name(self, key: str) -> None:
+        group = key.split("/", 1)[0]
+        if ("/" not in key or group not in METRIC_GROUPS) and key not in self._warned_keys:
+            self._warned_keys.add(key)
+            warnings.warn(f"metric {key!r} is outside the standard groups {list(METRIC_GROUPS)} "
+                          f"(name it '<group>/<name>')", RuntimeWarning, stacklevel=3)
+
+    def close(self) -> None:
+        """Flush and close the JSON file and finish the wandb run (safe to call twice)."""
+        if not self._file.closed:
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+        if self._wandb_run is not None:
+            self._wandb_run.finish()
+            self._wandb_run = None
+
+    def __enter__(self) -> "MetricsLogger":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_metrics(run_dir: str | os.PathLike) -> list:
+    """All records of ``run_dir/metrics.jsonl`` as dicts (for tests, plots and benchmarks)."""
+    path = Path(run_dir) / METRICS_FILE
+    if not path.exists():
+        return []
+    with open(path, encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
