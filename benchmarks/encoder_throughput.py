@@ -1,0 +1,173 @@
+"""Encoder throughput on one CPU core: parameters, FLOPs per sample, samples/s, share of the sgemm rate.
+
+    python -m benchmarks.encoder_throughput [--batch 4096] [--num-neighbors 6] [--encoders a,b] [--no-append]
+
+For each encoder at its paper sizes: forward (no grad, as in rollouts) and forward+backward (as in
+training) samples/s at the given batch, the matmul FLOPs counted by torch's FlopCounterMode, the GFLOP/s
+that achieves, and that rate as a fraction of the machine's float32 matmul rate (1024^3 sgemm) measured
+in the same run. Times are the best of ``--repeats`` runs (the machine may be shared). The figures are
+appended to benchmarks/RESULTS.md with the command, commit and machine.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from encoders import ENCODERS, make_encoder
+from encoders.testing import random_obs
+from quad_env.obs_layout import ObsLayout
+
+RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
+TARGET = ("se3_graphormer", 0.30)  # forward+backward share of the sgemm rate the issue asks for
+
+
+def best_time(fn, repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def sgemm_rate(repeats: int) -> float:
+    """float32 FLOP/s of a 1024 x 1024 x 1024 matmul on this thread."""
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+
+    def ten():
+        for _ in range(10):
+            a @ b
+    return 10 * 2 * 1024 ** 3 / best_time(ten, repeats)
+
+
+def counted_flops(fn) -> int:
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return counter.get_total_flops()
+
+
+def measure(name: str, layout: ObsLayout, obs: torch.Tensor, repeats: int) -> dict:
+    torch.manual_seed(0)
+    enc = make_encoder(name, layout)
+
+    def forward():
+        with torch.no_grad():
+            enc(obs)
+
+    def train_step():
+        enc.zero_grad(set_to_none=True)
+        enc(obs).sum().backward()
+
+    B = obs.shape[0]
+    row = {"name": name, "params": sum(p.numel() for p in enc.parameters()),
+           "fwd_flops": counted_flops(forward) / B, "fb_flops": counted_flops(train_step) / B}
+    row["fwd_s"] = best_time(forward, repeats)
+    row["fb_s"] = best_time(train_step, repeats)
+    return row
+
+
+def machine() -> str:
+    model = platform.processor() or "unknown cpu"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} cores, torch {torch.__version__}, {platform.system()} {platform.machine()}"
+
+
+def commit() -> str:
+    root = Path(__file__).resolve().parent.parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
+                             text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "encoders", "benchmarks/encoder_throughput.py"],
+                               cwd=root, capture_output=True, text=True).stdout.strip()
+        return sha + (" (encoders modified)" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=4096)
+    parser.add_argument("--num-neighbors", type=int, default=6)
+    parser.add_argument("--encoders", default=",".join(ENCODERS), help="comma-separated names")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per figure (best is kept)")
+    parser.add_argument("--core", type=int, default=None, help="CPU core to pin to (default: the last one)")
+    parser.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
+    args = parser.parse_args(argv)
+    names = [n for n in args.encoders.split(",") if n]
+    for n in names:
+        if n not in ENCODERS:
+            parser.error(f"unknown encoder {n!r}; valid: {list(ENCODERS)}")
+
+    torch.set_num_threads(1)
+    core = args.core if args.core is not None else max(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {core})
+
+    layout = ObsLayout(args.num_neighbors)
+    # every slot real: the worst case, and what a dense swarm gives
+    obs = torch.as_tensor(random_obs(layout, args.batch, np.random.default_rng(0), num_real=args.num_neighbors),
+                          dtype=torch.float32)
+    peak = sgemm_rate(args.repeats)
+    rows = [measure(n, layout, obs, args.repeats) for n in names]
+    peak_after = sgemm_rate(args.repeats)  # a busy machine shows up as a drift between the two
+    peak = max(peak, peak_after)  # the conservative denominator
+
+    B = args.batch
+    header = ("| encoder | params | MFLOP/sample fwd | MFLOP/sample fwd+bwd | fwd samples/s | fwd+bwd samples/s "
+              "| fwd GFLOP/s (% sgemm) | fwd+bwd GFLOP/s (% sgemm) |")
+    lines = [header, "|" + "---|" * 8]
+    verdict = ""
+    for r in rows:
+        fwd_rate = r["fwd_flops"] * B / r["fwd_s"]
+        fb_rate = r["fb_flops"] * B / r["fb_s"]
+        lines.append(f"| {r['name']} | {r['params']:,} | {r['fwd_flops'] / 1e6:.2f} | {r['fb_flops'] / 1e6:.2f} "
+                     f"| {B / r['fwd_s']:,.0f} | {B / r['fb_s']:,.0f} "
+                     f"| {fwd_rate / 1e9:.1f} ({fwd_rate / peak:.0%}) | {fb_rate / 1e9:.1f} ({fb_rate / peak:.0%}) |")
+        if r["name"] == TARGET[0]:
+            ok = fb_rate / peak >= TARGET[1]
+            verdict = (f"Target ({TARGET[0]} forward+backward >= {TARGET[1]:.0%} of sgemm): "
+                       f"{fb_rate / peak:.0%} -> {'met' if ok else 'NOT met'}.")
+    command = "python -m benchmarks.encoder_throughput " + " ".join(sys.argv[1:] if argv is None else argv)
+    section = "\n".join([
+        f"## encoder_throughput — {datetime.datetime.now().isoformat(timespec='seconds')}",
+        "",
+        f"- command: `{command.strip()}`",
+        f"- commit: {commit()}",
+        f"- machine: {machine()}; 1 thread pinned to core {core}",
+        f"- batch {B}, K = {args.num_neighbors} (all slots real), float32, paper sizes; best of {args.repeats} runs",
+        f"- sgemm 1024^3 float32: {peak / 1e9:.1f} GFLOP/s (best of a measurement before and after the encoders;"
+        f" after: {peak_after / 1e9:.1f}); the % columns divide by it",
+        f"- FLOPs: matmul FLOPs counted by torch.utils.flop_counter (elementwise ops not counted)",
+        "",
+        *lines,
+        "",
+        verdict,
+        "",
+    ])
+    print(section)
+    if not args.no_append:
+        with RESULTS.open("a") as fh:
+            if fh.tell() == 0:
+                fh.write("# Benchmark results\n\nOne section per run, appended by the benchmark scripts.\n\n")
+            fh.write(section + "\n")
+        print(f"appended to {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()
