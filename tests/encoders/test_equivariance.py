@@ -127,3 +127,13 @@ def test_policy_is_deliberately_not_equivariant():
     mean, _, _ = model(obs)
     mean_moved, _, _ = model(layout.transform(obs, Q))
     assert (mean - mean_moved).abs().max() > 1e-3
+
+
+@pytest.mark.parametrize("name", SE3)
+def test_paper_sizes_equivariant_in_both_dtypes(name):
+    layout = ObsLayout(6)
+    torch.manual_seed(0)
+    enc = encoders.make_encoder(name, layout)  # default (paper) sizes
+    obs = batch(layout, n=8, seed=9)
+    assert assert_equivariant(enc, obs.float(), layout, enc.equivariance, rotations=2) < 1e-4
+    assert assert_equivariant(enc.double(), obs, layout, enc.equivariance, rotations=2) < 1e-9
