@@ -1,5 +1,9 @@
 """quad_env: a numba-JIT multi-quadrotor swarm environment (Crazyflie 2.0 dynamics)."""
-from quad_env.config import EnvConfig, RewardConfig
+from quad_env.config import EnvConfig, PhysicsConfig, RewardConfig
 from quad_env.obs_layout import FIELD_KINDS, Field, ObsLayout
+from quad_env.params import REWARD_TERMS
+from quad_env.scenarios import SCENARIOS, make_scenario, register_scenario
+from quad_env.vec_env import DroneState, VecQuadEnv
 
-__all__ = ["EnvConfig", "RewardConfig", "ObsLayout", "Field", "FIELD_KINDS"]
+__all__ = ["EnvConfig", "RewardConfig", "PhysicsConfig", "ObsLayout", "Field", "FIELD_KINDS", "REWARD_TERMS",
+           "SCENARIOS", "make_scenario", "register_scenario", "VecQuadEnv", "DroneState"]

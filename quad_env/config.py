@@ -6,7 +6,10 @@ command line sets ``EnvConfig.num_agents``. Field names are part of the public c
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Optional
+from typing import Optional, Tuple
+
+SIM_DTYPES = ("float32", "float64")
+NAN_POLICIES = ("raise", "reset")
 
 
 @dataclass
@@ -25,6 +28,84 @@ class RewardConfig:
     """c4: weight of -||omega_i|| (times dt)."""
     action: float = 0.05
     """c5: weight of -||u_i|| on the raw action in [-1, 1]^4 (times dt)."""
+
+
+@dataclass
+class PhysicsConfig:
+    """Quadrotor and room model. Defaults: Crazyflie 2.0 (the QuadSwarm simulator's numbers).
+
+    Change these to validate the model against another airframe's flight logs (see ``VecQuadEnv.simulate``).
+    """
+
+    mass: float = 0.028
+    """Drone mass, kg."""
+    inertia: Tuple[float, float, float] = (1.367e-5, 1.436e-5, 2.656e-5)
+    """Principal moments of inertia (body x, y, z), kg m^2."""
+    arm_xy: float = 0.0325
+    """Motor offset along body x and y, m: motors at (+-arm_xy, +-arm_xy), x-configuration."""
+    thrust_to_weight: float = 1.9
+    """Total maximum thrust over weight (0.1305 N per motor for the defaults)."""
+    torque_to_thrust: float = 0.006
+    """Rotor drag torque about body z per newton of thrust, m."""
+    motor_time_constant: float = 0.0375
+    """First-order lag of the normalised rotor speed sqrt(cmd), s (gain physics_dt / this, capped at 1)."""
+    omega_max: float = 40.0
+    """Body rates are clipped to +-omega_max, rad/s."""
+    gravity: float = 9.81
+    """m/s^2."""
+    thrust_noise_theta: float = 0.15
+    """Ornstein-Uhlenbeck mean reversion per physics step of the multiplicative thrust noise."""
+    thrust_noise_sigma: float = 0.01
+    """Ornstein-Uhlenbeck standard deviation per physics step of the multiplicative thrust noise."""
+    sensor_noise_pos: float = 0.005
+    """Std of the Gaussian noise on the drone's own observed position, m."""
+    sensor_noise_vel: float = 0.01
+    """Std of the Gaussian noise on the drone's own observed velocity, m/s."""
+    sensor_noise_omega: float = 1.75e-4
+    """Std of the Gaussian noise on the drone's own observed body rates, rad/s."""
+    downwash_accel: float = 2.5
+    """Downwash acceleration at contact, m/s^2; it decays linearly to 0 at ``downwash_length``."""
+    downwash_length: float = 0.7
+    """Reach of the downwash below a drone, along its rotor axis, m."""
+    downwash_radius: float = 0.1
+    """Radius of the downwash cylinder around the rotor axis, m."""
+    collision_dist: float = 0.092
+    """Centre distance at or below which two drones touch, m."""
+    collision_restitution: float = 0.75
+    """Fraction of the exchanged normal velocity kept after a drone-drone collision."""
+    collision_kick: float = 5.0
+    """Std of the random body-rate kick per axis after a drone-drone collision, rad/s (0 = none)."""
+    wall_restitution: float = 0.5
+    """Fraction of the normal speed kept when bouncing off a wall or the ceiling."""
+    floor_z: float = 0.046
+    """Height of the drone centre when resting on the floor, m; at or below it the drone lands."""
+    room_half_width: float = 5.0
+    """Walls at x, y = +-room_half_width, m."""
+    room_height: float = 10.0
+    """Ceiling height, m."""
+    reortho_interval: int = 50
+    """Rotations are re-orthonormalised every this many control steps."""
+
+    def validate(self) -> "PhysicsConfig":
+        for name in ("mass", "arm_xy", "thrust_to_weight", "motor_time_constant", "omega_max", "gravity",
+                     "collision_dist", "room_half_width", "room_height"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"env.physics.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("torque_to_thrust", "thrust_noise_theta", "thrust_noise_sigma", "sensor_noise_pos",
+                     "sensor_noise_vel", "sensor_noise_omega", "downwash_accel", "downwash_length",
+                     "downwash_radius", "collision_kick"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"env.physics.{name} must be >= 0, got {getattr(self, name)!r}")
+        for name in ("collision_restitution", "wall_restitution"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"env.physics.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        if len(tuple(self.inertia)) != 3 or not all(float(v) > 0 for v in self.inertia):
+            raise ValueError(f"env.physics.inertia must be 3 positive numbers, got {self.inertia!r}")
+        if not 0 <= self.floor_z < self.room_height:
+            raise ValueError(f"env.physics.floor_z must be in [0, room_height), got {self.floor_z!r}")
+        if not isinstance(self.reortho_interval, int) or self.reortho_interval < 1:
+            raise ValueError(f"env.physics.reortho_interval must be an int >= 1, got {self.reortho_interval!r}")
+        return self
 
 
 @dataclass
@@ -58,6 +139,24 @@ class EnvConfig:
     """Downwash from drones above (within 0.7 m along the rotor axis and 0.1 m radially)."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Reward coefficients."""
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    """Airframe, motor, noise, contact and room constants (Crazyflie 2.0 defaults)."""
+    sim_dtype: str = "float64"
+    """Floating type of the simulator state: "float64" (default: as fast as float32 on x86 here, since the
+    kernels compute in float64 anyway) or "float32" (half the state memory). Observations and rewards are
+    float32 either way."""
+    nan_policy: str = "raise"
+    """What a non-finite drone state does: "raise" (FloatingPointError naming the swarm) or "reset"
+    (the swarm is reset, its rows are truncated, a RuntimeWarning is issued and the episode's stats carry
+    ``diverged=True``)."""
+
+    def __post_init__(self):
+        # Config files give nested sections as plain dicts; accept them.
+        if isinstance(self.reward, dict):
+            self.reward = RewardConfig(**self.reward)
+        if isinstance(self.physics, dict):
+            self.physics = PhysicsConfig(**self.physics)
+        self.physics.inertia = tuple(float(v) for v in self.physics.inertia)
 
     @property
     def control_dt(self) -> float:
@@ -85,6 +184,20 @@ class EnvConfig:
             raise ValueError(f"env.substeps must be an int >= 1, got {self.substeps!r}")
         if self.drag_coeff < 0:
             raise ValueError(f"env.drag_coeff must be >= 0, got {self.drag_coeff!r}")
+        if self.sim_dtype not in SIM_DTYPES:
+            raise ValueError(f"env.sim_dtype must be one of {list(SIM_DTYPES)}, got {self.sim_dtype!r}")
+        if self.nan_policy not in NAN_POLICIES:
+            raise ValueError(f"env.nan_policy must be one of {list(NAN_POLICIES)}, got {self.nan_policy!r}")
+        if self.episode_steps < 1:
+            raise ValueError(f"env.episode_duration must last at least one control step, got {self.episode_duration!r}")
+        if not isinstance(self.scenario, str):
+            raise ValueError(f"env.scenario must be a scenario name (str), got {self.scenario!r}")
+        for name in ("pos", "collision", "proximity", "omega", "action"):
+            if not getattr(self.reward, name) >= 0:
+                raise ValueError(f"env.reward.{name} must be >= 0, got {getattr(self.reward, name)!r}")
+        if not self.reward.proximity_dist > 0:
+            raise ValueError(f"env.reward.proximity_dist must be > 0, got {self.reward.proximity_dist!r}")
+        self.physics.validate()
         return self
 
     def to_dict(self) -> dict:

@@ -1,0 +1,644 @@
+"""Numba kernels: one call steps every drone of every swarm, in place, with no Python loop.
+
+State arrays (M = E * N drones, drone a of swarm e at row e * N + a; float32 or float64, the kernels
+specialise on the dtype)::
+
+    pos   [M, 3]     world position, m
+    vel   [M, 3]     world velocity, m/s
+    rot   [M, 3, 3]  body -> world rotation
+    omega [M, 3]     body rates, rad/s
+    motor [M, 4]     normalised rotor speed in [0, 1]; thrust fraction = motor^2
+    ou    [M, 4]     Ornstein-Uhlenbeck thrust noise state (multiplies the command)
+    goal  [M, 3]     goal position, m
+
+Per swarm: ``contact [E, N, N] uint8`` (pair a < b touching at the last step), ``room_contact [M]``,
+``rng [E] uint64`` (SplitMix64 streams, see ``quad_env.rng``), ``step_count [E]`` and the episode
+accumulators.
+
+One control step of one swarm (``step_kernel``):
+  1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls);
+  2. every 50th step (config): re-orthonormalise the rotations;
+  3. one pass over pairs a < b: new contacts, collision response, proximity sums, downwash impulses;
+  4. one pass over drones: K nearest neighbours (partial selection), observation row and reward terms.
+Pair effects (collisions, downwash) act once per control step, as in the QuadSwarm simulator; the
+downwash is an impulse ``a * control_dt``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from quad_env.params import (
+    F_ARM, F_C_ACTION, F_C_COLL, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
+    F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
+    F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
+    F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
+    I_FULL_NB, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS, I_TAIL_STEPS,
+    I_THRUST_NOISE,
+)
+from quad_env.rng import normal_pair, uniform
+
+# Episode accumulator columns (float64 [E, NUM_ACC]).
+ACC_RETURN = 0  # sum over steps and agents of the reward
+ACC_TERMS = 1  # 5 columns: per-term sums, order of params.REWARD_TERMS
+ACC_COLLISIONS = 6  # new drone-drone contacts (pairs)
+ACC_ROOM = 7  # new floor / wall / ceiling contacts (drones)
+ACC_DIST_TAIL = 8  # sum over the last-5-s steps of the mean distance to goal
+ACC_TAIL_STEPS = 9  # number of steps in that sum
+ACC_DIST_FINAL = 10  # mean distance to goal after the latest step
+NUM_ACC = 11
+
+
+# ====================================================================== single drone
+@njit(cache=True)
+def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
+    """``substeps`` physics steps of drone ``i`` under ``action[i]``; returns 1 if it touched the room.
+
+    Per physics step (explicit Euler for position, velocity and body rates, exact rotation update):
+      motor speed w += gain (sqrt(cmd) - w);  thrust fraction f = clip(w^2 + cmd * ou, 0, 1)
+      I w' = tau - w x I w  (rates clipped to +-omega_max);  R <- R exp(dt [w]_x)  (new rates)
+      a = R [0, 0, sum T] / m - g e_z - (drag / m) v;  x += dt v;  v += dt a
+    then floor (land: zero velocity and rates, level the attitude keeping yaw) and walls (bounce).
+    """
+    dt = fp[F_DT]
+    gain = fp[F_MOTOR_GAIN]
+    tmax = fp[F_TMAX]
+    arm = fp[F_ARM]
+    ktau = fp[F_KTAU]
+    inv_m = 1.0 / fp[F_MASS]
+    grav = fp[F_GRAV]
+    drag = fp[F_DRAG]
+    ixx, iyy, izz = fp[F_IXX], fp[F_IYY], fp[F_IZZ]
+    wmax = fp[F_OMEGA_MAX]
+    theta, sigma = fp[F_OU_THETA], fp[F_OU_SIGMA]
+    floor_z, half, height, wall_rest = fp[F_FLOOR_Z], fp[F_ROOM_HALF], fp[F_ROOM_H], fp[F_WALL_REST]
+    noise = ip[I_THRUST_NOISE] != 0
+
+    # Commands in [0, 1]; the motors track the rotor speed sqrt(cmd).
+    c0 = 0.5 * (min(max(action[i, 0], -1.0), 1.0) + 1.0)
+    c1 = 0.5 * (min(max(action[i, 1], -1.0), 1.0) + 1.0)
+    c2 = 0.5 * (min(max(action[i, 2], -1.0), 1.0) + 1.0)
+    c3 = 0.5 * (min(max(action[i, 3], -1.0), 1.0) + 1.0)
+    s0, s1, s2, s3 = np.sqrt(c0), np.sqrt(c1), np.sqrt(c2), np.sqrt(c3)
+
+    # Load the state into registers (written back once at the end).
+    w0, w1, w2, w3 = motor[i, 0] * 1.0, motor[i, 1] * 1.0, motor[i, 2] * 1.0, motor[i, 3] * 1.0
+    n0, n1, n2, n3 = ou[i, 0] * 1.0, ou[i, 1] * 1.0, ou[i, 2] * 1.0, ou[i, 3] * 1.0
+    px, py, pz = pos[i, 0] * 1.0, pos[i, 1] * 1.0, pos[i, 2] * 1.0
+    vx, vy, vz = vel[i, 0] * 1.0, vel[i, 1] * 1.0, vel[i, 2] * 1.0
+    wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
+    r00, r01, r02 = rot[i, 0, 0] * 1.0, rot[i, 0, 1] * 1.0, rot[i, 0, 2] * 1.0
+    r10, r11, r12 = rot[i, 1, 0] * 1.0, rot[i, 1, 1] * 1.0, rot[i, 1, 2] * 1.0
+    r20, r21, r22 = rot[i, 2, 0] * 1.0, rot[i, 2, 1] * 1.0, rot[i, 2, 2] * 1.0
+    touched = 0
+
+    for _ in range(ip[I_SUBSTEPS]):
+        # ---- motors: first-order lag on rotor speed, multiplicative OU noise on the command
+        w0 += gain * (s0 - w0)
+        w1 += gain * (s1 - w1)
+        w2 += gain * (s2 - w2)
+        w3 += gain * (s3 - w3)
+        f0, f1, f2, f3 = w0 * w0, w1 * w1, w2 * w2, w3 * w3
+        if noise:
+            g0, g1 = normal_pair(rng, e)
+            g2, g3 = normal_pair(rng, e)
+            n0 += -theta * n0 + sigma * g0
+            n1 += -theta * n1 + sigma * g1
+            n2 += -theta * n2 + sigma * g2
+            n3 += -theta * n3 + sigma * g3
+            f0 += c0 * n0
+            f1 += c1 * n1
+            f2 += c2 * n2
+            f3 += c3 * n3
+        t0 = tmax * min(max(f0, 0.0), 1.0)
+        t1 = tmax * min(max(f1, 0.0), 1.0)
+        t2 = tmax * min(max(f2, 0.0), 1.0)
+        t3 = tmax * min(max(f3, 0.0), 1.0)
+
+        # ---- body-frame torques. Motors (+x,-y), (-x,-y), (-x,+y), (+x,+y); spins [-1, +1, -1, +1].
+        tau_x = arm * (-t0 - t1 + t2 + t3)  # sum y_m T_m
+        tau_y = arm * (-t0 + t1 + t2 - t3)  # -sum x_m T_m
+        tau_z = ktau * (-t0 + t1 - t2 + t3)
+        thrust = t0 + t1 + t2 + t3
+
+        # ---- translation (explicit Euler, derivatives at the start of the step)
+        ax = r02 * thrust * inv_m - drag * vx
+        ay = r12 * thrust * inv_m - drag * vy
+        az = r22 * thrust * inv_m - grav - drag * vz
+        px += dt * vx
+        py += dt * vy
+        pz += dt * vz
+        vx += dt * ax
+        vy += dt * ay
+        vz += dt * az
+
+        # ---- body rates: I w' = tau - w x (I w)
+        hx, hy, hz = ixx * wx, iyy * wy, izz * wz
+        dwx = (tau_x - (wy * hz - wz * hy)) / ixx
+        dwy = (tau_y - (wz * hx - wx * hz)) / iyy
+        dwz = (tau_z - (wx * hy - wy * hx)) / izz
+        wx = min(max(wx + dt * dwx, -wmax), wmax)
+        wy = min(max(wy + dt * dwy, -wmax), wmax)
+        wz = min(max(wz + dt * dwz, -wmax), wmax)
+
+        # ---- rotation: R <- R exp(dt [w]_x), Rodrigues with the new rates
+        wn = np.sqrt(wx * wx + wy * wy + wz * wz)
+        if wn > 1e-12:
+            ang = wn * dt
+            kx, ky, kz = wx / wn, wy / wn, wz / wn
+            c = np.cos(ang)
+            s = np.sin(ang)
+            v = 1.0 - c
+            e00 = c + v * kx * kx
+            e01 = v * kx * ky - s * kz
+            e02 = v * kx * kz + s * ky
+            e10 = v * ky * kx + s * kz
+            e11 = c + v * ky * ky
+            e12 = v * ky * kz - s * kx
+            e20 = v * kz * kx - s * ky
+            e21 = v * kz * ky + s * kx
+            e22 = c + v * kz * kz
+            a0 = r00 * e00 + r01 * e10 + r02 * e20
+            a1 = r00 * e01 + r01 * e11 + r02 * e21
+            a2 = r00 * e02 + r01 * e12 + r02 * e22
+            b0 = r10 * e00 + r11 * e10 + r12 * e20
+            b1 = r10 * e01 + r11 * e11 + r12 * e21
+            b2 = r10 * e02 + r11 * e12 + r12 * e22
+            d0 = r20 * e00 + r21 * e10 + r22 * e20
+            d1 = r20 * e01 + r21 * e11 + r22 * e21
+            d2 = r20 * e02 + r21 * e12 + r22 * e22
+            r00, r01, r02 = a0, a1, a2
+            r10, r11, r12 = b0, b1, b2
+            r20, r21, r22 = d0, d1, d2
+
+        # ---- room: the floor lands the drone, walls and ceiling bounce it back
+        if pz <= floor_z:
+            touched = 1
+            pz = floor_z
+            if vz <= 0.0:  # landing or resting (a drone taking off has vz > 0)
+                vx, vy, vz = 0.0, 0.0, 0.0
+                wx, wy, wz = 0.0, 0.0, 0.0
+                yaw = np.arctan2(r10, r00)
+                cy, sy = np.cos(yaw), np.sin(yaw)
+                r00, r01, r02 = cy, -sy, 0.0
+                r10, r11, r12 = sy, cy, 0.0
+                r20, r21, r22 = 0.0, 0.0, 1.0
+        elif pz > height:
+            touched = 1
+            pz = height
+            if vz > 0.0:
+                vz = -wall_rest * vz
+        if px > half:
+            touched = 1
+            px = half
+            if vx > 0.0:
+                vx = -wall_rest * vx
+        elif px < -half:
+            touched = 1
+            px = -half
+            if vx < 0.0:
+                vx = -wall_rest * vx
+        if py > half:
+            touched = 1
+            py = half
+            if vy > 0.0:
+                vy = -wall_rest * vy
+        elif py < -half:
+            touched = 1
+            py = -half
+            if vy < 0.0:
+                vy = -wall_rest * vy
+
+    motor[i, 0], motor[i, 1], motor[i, 2], motor[i, 3] = w0, w1, w2, w3
+    ou[i, 0], ou[i, 1], ou[i, 2], ou[i, 3] = n0, n1, n2, n3
+    pos[i, 0], pos[i, 1], pos[i, 2] = px, py, pz
+    vel[i, 0], vel[i, 1], vel[i, 2] = vx, vy, vz
+    omega[i, 0], omega[i, 1], omega[i, 2] = wx, wy, wz
+    rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2] = r00, r01, r02
+    rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2] = r10, r11, r12
+    rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2] = r20, r21, r22
+    return touched
+
+
+@njit(cache=True)
+def reorthonormalise(i, rot):
+    """One Newton step of the polar decomposition: R <- (3 R - R R^T R) / 2 (symmetric in the axes)."""
+    r = rot[i]
+    # P = R R^T (symmetric)
+    p00 = r[0, 0] * r[0, 0] + r[0, 1] * r[0, 1] + r[0, 2] * r[0, 2]
+    p01 = r[0, 0] * r[1, 0] + r[0, 1] * r[1, 1] + r[0, 2] * r[1, 2]
+    p02 = r[0, 0] * r[2, 0] + r[0, 1] * r[2, 1] + r[0, 2] * r[2, 2]
+    p11 = r[1, 0] * r[1, 0] + r[1, 1] * r[1, 1] + r[1, 2] * r[1, 2]
+    p12 = r[1, 0] * r[2, 0] + r[1, 1] * r[2, 1] + r[1, 2] * r[2, 2]
+    p22 = r[2, 0] * r[2, 0] + r[2, 1] * r[2, 1] + r[2, 2] * r[2, 2]
+    for c in range(3):
+        x0, x1, x2 = r[0, c] * 1.0, r[1, c] * 1.0, r[2, c] * 1.0
+        r[0, c] = 1.5 * x0 - 0.5 * (p00 * x0 + p01 * x1 + p02 * x2)
+        r[1, c] = 1.5 * x1 - 0.5 * (p01 * x0 + p11 * x1 + p12 * x2)
+        r[2, c] = 1.5 * x2 - 0.5 * (p02 * x0 + p12 * x1 + p22 * x2)
+
+
+@njit(cache=True)
+def _is_finite_drone(i, pos, vel, rot, omega, motor):
+    s = 0.0
+    for k in range(3):
+        s += pos[i, k] + vel[i, k] + omega[i, k] + rot[i, k, 0] + rot[i, k, 1] + rot[i, k, 2]
+    for k in range(4):
+        s += motor[i, k]
+    return np.isfinite(s)
+
+
+# ====================================================================== pair effects
+@njit(cache=True)
+def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, d2mat):
+    """Collisions, proximity and downwash over every pair a < b of swarm ``e``.
+
+    Writes ``new_coll [N]`` (new contacts of each drone), ``prox [N]`` (sum_j [1 - d/d_p]_+) and the
+    squared centre distances ``d2mat [N, N]`` (read again by the neighbour search), and
+    updates velocities (collision response, downwash) and body rates (collision kick). Returns the
+    number of new contacts (pairs).
+
+    Collision response of a touching pair that approaches along the unit normal n: the normal velocity
+    components are exchanged (equal masses) and scaled by the restitution; each drone gets a random
+    body-rate kick (Gaussian, std ``collision_kick`` per axis) when noise is on.
+    Downwash: if b lies below a's rotor disc (0 < s < L along -z_a and radial distance < r),
+    v_b += -z_a * a0 (1 - s / L) * control_dt; and symmetrically.
+    """
+    n_agents = ip[I_N]
+    base = e * n_agents
+    cd = fp[F_COLL_DIST]
+    cd2 = cd * cd
+    rest = fp[F_COLL_REST]
+    kick = fp[F_COLL_KICK]
+    use_kick = ip[I_COLL_KICK] != 0
+    dp = fp[F_PROX_DIST]
+    dp2 = dp * dp
+    use_dw = ip[I_DOWNWASH] != 0
+    dw_len, dw_rad = fp[F_DW_LEN], fp[F_DW_RAD]
+    dw_reach2 = dw_len * dw_len + dw_rad * dw_rad
+    dw_rad2 = dw_rad * dw_rad
+    dw_gain = fp[F_DW_ACC] * fp[F_CTRL_DT]
+    count = 0
+    for a in range(n_agents):
+        new_coll[a] = 0.0
+        prox[a] = 0.0
+    for a in range(n_agents):
+        i = base + a
+        pax, pay, paz = pos[i, 0], pos[i, 1], pos[i, 2]
+        for b in range(a + 1, n_agents):
+            j = base + b
+            dx = pos[j, 0] - pax
+            dy = pos[j, 1] - pay
+            dz = pos[j, 2] - paz
+            d2 = dx * dx + dy * dy + dz * dz
+            d2mat[a, b] = d2
+            d2mat[b, a] = d2
+            if d2 < dp2:
+                pen = 1.0 - np.sqrt(d2) / dp
+                prox[a] += pen
+                prox[b] += pen
+            if d2 <= cd2:
+                if contact[e, a, b] == 0:
+                    contact[e, a, b] = 1
+                    new_coll[a] += 1.0
+                    new_coll[b] += 1.0
+                    count += 1
+                d = np.sqrt(d2)
+                if d > 0.0:
+                    nx, ny, nz = dx / d, dy / d, dz / d
+                else:
+                    nx, ny, nz = 0.0, 0.0, 1.0
+                ua = vel[i, 0] * nx + vel[i, 1] * ny + vel[i, 2] * nz
+                ub = vel[j, 0] * nx + vel[j, 1] * ny + vel[j, 2] * nz
+                if ub - ua < 0.0:  # approaching
+                    da = rest * ub - ua
+                    db = rest * ua - ub
+                    vel[i, 0] += da * nx
+                    vel[i, 1] += da * ny
+                    vel[i, 2] += da * nz
+                    vel[j, 0] += db * nx
+                    vel[j, 1] += db * ny
+                    vel[j, 2] += db * nz
+                    if use_kick:
+                        g0, g1 = normal_pair(rng, e)
+                        g2, g3 = normal_pair(rng, e)
+                        g4, g5 = normal_pair(rng, e)
+                        omega[i, 0] += kick * g0
+                        omega[i, 1] += kick * g1
+                        omega[i, 2] += kick * g2
+                        omega[j, 0] += kick * g3
+                        omega[j, 1] += kick * g4
+                        omega[j, 2] += kick * g5
+            elif contact[e, a, b] != 0:
+                contact[e, a, b] = 0
+            if use_dw and d2 < dw_reach2:
+                # b below a? s = depth of b along a's -z axis.
+                s = -(dx * rot[i, 0, 2] + dy * rot[i, 1, 2] + dz * rot[i, 2, 2])
+                if 0.0 < s < dw_len and d2 - s * s < dw_rad2:
+                    dv = dw_gain * (1.0 - s / dw_len)
+                    vel[j, 0] -= dv * rot[i, 0, 2]
+                    vel[j, 1] -= dv * rot[i, 1, 2]
+                    vel[j, 2] -= dv * rot[i, 2, 2]
+                # a below b? depth of a along b's -z axis.
+                s = dx * rot[j, 0, 2] + dy * rot[j, 1, 2] + dz * rot[j, 2, 2]
+                if 0.0 < s < dw_len and d2 - s * s < dw_rad2:
+                    dv = dw_gain * (1.0 - s / dw_len)
+                    vel[i, 0] -= dv * rot[j, 0, 2]
+                    vel[i, 1] -= dv * rot[j, 1, 2]
+                    vel[i, 2] -= dv * rot[j, 2, 2]
+    return count
+
+
+# ====================================================================== observation and reward
+@njit(cache=True)
+def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, d2mat, rng, fp, ip,
+                  obs, rew, terms, nb_idx, nb_d2, with_reward):
+    """Observation rows (and, if ``with_reward``, reward terms) of every drone of swarm ``e``.
+
+    Neighbours: the K nearest other drones by centre distance (squared distances from ``d2mat``), ties
+    broken by the lower index, found by one scan that inserts into a K-slot sorted list (O(N K) worst
+    case, O(N) typical), never by sorting all N.
+    Slots beyond the real neighbours or the sensing radius are zero with mask 0.
+    Returns the swarm's mean distance to goal.
+    """
+    n_agents = ip[I_N]
+    k_slots = ip[I_K]
+    base = e * n_agents
+    full = ip[I_FULL_NB] != 0
+    nb_dim = ip[I_NB_DIM]
+    mask_start = 18 + k_slots * nb_dim
+    sense2 = fp[F_SENSE_R] * fp[F_SENSE_R]
+    sensor_noise = ip[I_SENSOR_NOISE] != 0
+    sp, sv, sw = fp[F_NOISE_POS], fp[F_NOISE_VEL], fp[F_NOISE_OMEGA]
+    dt = fp[F_CTRL_DT]
+    c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
+    c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
+    dist_sum = 0.0
+    for a in range(n_agents):
+        i = base + a
+        row = obs[i]
+        px, py, pz = pos[i, 0] * 1.0, pos[i, 1] * 1.0, pos[i, 2] * 1.0
+        gx, gy, gz = px - goal[i, 0], py - goal[i, 1], pz - goal[i, 2]
+        dist = np.sqrt(gx * gx + gy * gy + gz * gz)
+        dist_sum += dist
+
+        # ---- self block: [x - x^d, v, R (row-major), omega]
+        ox, oy, oz = gx, gy, gz
+        ovx, ovy, ovz = vel[i, 0] * 1.0, vel[i, 1] * 1.0, vel[i, 2] * 1.0
+        owx, owy, owz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
+        if sensor_noise:
+            g0, g1 = normal_pair(rng, e)
+            g2, g3 = normal_pair(rng, e)
+            g4, g5 = normal_pair(rng, e)
+            g6, g7 = normal_pair(rng, e)
+            g8, _ = normal_pair(rng, e)
+            ox += sp * g0
+            oy += sp * g1
+            oz += sp * g2
+            ovx += sv * g3
+            ovy += sv * g4
+            ovz += sv * g5
+            owx += sw * g6
+            owy += sw * g7
+            owz += sw * g8
+        row[0], row[1], row[2] = ox, oy, oz
+        row[3], row[4], row[5] = ovx, ovy, ovz
+        for r in range(3):
+            for c in range(3):
+                row[6 + 3 * r + c] = rot[i, r, c]
+        row[15], row[16], row[17] = owx, owy, owz
+
+        # ---- K nearest neighbours: keep a sorted list of (d2, index); later equal d2 lose ties
+        found = 0
+        if k_slots > 0:
+            d2row = d2mat[a]
+            limit = sense2  # accept d2 <= limit until the list is full, then only d2 < the K-th
+            for b in range(n_agents):
+                d2 = d2row[b]
+                if d2 > limit or b == a:
+                    continue
+                if found == k_slots and d2 >= nb_d2[k_slots - 1]:
+                    continue
+                j = base + b
+                slot = found if found < k_slots else k_slots - 1
+                while slot > 0 and nb_d2[slot - 1] > d2:
+                    nb_d2[slot] = nb_d2[slot - 1]
+                    nb_idx[slot] = nb_idx[slot - 1]
+                    slot -= 1
+                nb_d2[slot] = d2
+                nb_idx[slot] = j
+                if found < k_slots:
+                    found += 1
+        for k in range(k_slots):
+            off = 18 + k * nb_dim
+            if k < found:
+                j = nb_idx[k]
+                row[off + 0] = pos[j, 0] - px
+                row[off + 1] = pos[j, 1] - py
+                row[off + 2] = pos[j, 2] - pz
+                row[off + 3] = vel[j, 0] - vel[i, 0]
+                row[off + 4] = vel[j, 1] - vel[i, 1]
+                row[off + 5] = vel[j, 2] - vel[i, 2]
+                if full:
+                    for r in range(3):
+                        for c in range(3):
+                            row[off + 6 + 3 * r + c] = rot[j, r, c]
+                    row[off + 15] = omega[j, 0]
+                    row[off + 16] = omega[j, 1]
+                    row[off + 17] = omega[j, 2]
+                    row[off + 18] = goal[j, 0] - pos[j, 0]
+                    row[off + 19] = goal[j, 1] - pos[j, 1]
+                    row[off + 20] = goal[j, 2] - pos[j, 2]
+                row[mask_start + k] = 1.0
+            else:
+                for q in range(nb_dim):
+                    row[off + q] = 0.0
+                row[mask_start + k] = 0.0
+        for q in range(mask_start + k_slots, ip[I_OBS_DIM]):
+            row[q] = 0.0  # fields of later issues (obstacle field)
+
+        # ---- reward terms (true state, not the noisy observation)
+        if with_reward:
+            wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
+            u0 = min(max(action[i, 0] * 1.0, -1.0), 1.0)
+            u1 = min(max(action[i, 1] * 1.0, -1.0), 1.0)
+            u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
+            u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
+            r_pos = -c_pos * dist
+            r_coll = -c_coll * new_coll[a]
+            r_prox = -c_prox * prox[a]
+            r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
+            r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
+            terms[0, i] = r_pos
+            terms[1, i] = r_coll
+            terms[2, i] = r_prox
+            terms[3, i] = r_omega
+            terms[4, i] = r_act
+            rew[i] = r_pos + r_coll + r_prox + r_omega + r_act
+    return dist_sum / n_agents
+
+
+# ====================================================================== whole-batch kernels
+@njit(cache=True)
+def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng, step_count,
+                fp, ip, obs, rew, terms, done, diverged, acc):
+    """One control step of all E swarms (see the module docstring). Returns the number of swarms done.
+
+    ``done[e]`` = the episode of swarm e reached its length (truncation). ``diverged[e]`` = a drone's
+    state became non-finite: that swarm's observation rows keep the previous step's values, its reward
+    rows are 0, and it is reported done; the caller decides (raise or reset).
+    """
+    n_agents = ip[I_N]
+    num_envs = step_count.shape[0]
+    k_slots = ip[I_K]
+    nb_idx = np.zeros(max(k_slots, 1), np.int64)
+    nb_d2 = np.zeros(max(k_slots, 1), np.float64)
+    new_coll = np.zeros(n_agents, np.float64)
+    prox = np.zeros(n_agents, np.float64)
+    d2mat = np.zeros((n_agents, n_agents), np.float64)
+    n_done = 0
+    for e in range(num_envs):
+        base = e * n_agents
+        step_count[e] += 1
+        reortho = step_count[e] % ip[I_REORTHO] == 0
+        bad = False
+        for a in range(n_agents):
+            i = base + a
+            touched = advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip)
+            if touched != 0 and room_contact[i] == 0:
+                acc[e, ACC_ROOM] += 1.0
+            room_contact[i] = touched
+            if reortho:
+                reorthonormalise(i, rot)
+            if not _is_finite_drone(i, pos, vel, rot, omega, motor):
+                bad = True
+        done[e] = step_count[e] >= ip[I_EP_STEPS]
+        if bad:
+            diverged[e] = True
+            done[e] = True
+            for a in range(n_agents):
+                rew[base + a] = 0.0
+                for t in range(5):
+                    terms[t, base + a] = 0.0
+            n_done += 1
+            continue
+        acc[e, ACC_COLLISIONS] += pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox,
+                                               d2mat)
+        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, d2mat, rng, fp, ip,
+                                  obs, rew, terms, nb_idx, nb_d2, True)
+        # ---- episode statistics
+        for a in range(n_agents):
+            i = base + a
+            acc[e, ACC_RETURN] += rew[i]
+            for t in range(5):
+                acc[e, ACC_TERMS + t] += terms[t, i]
+        acc[e, ACC_DIST_FINAL] = mean_dist
+        if step_count[e] > ip[I_EP_STEPS] - ip[I_TAIL_STEPS]:
+            acc[e, ACC_DIST_TAIL] += mean_dist
+            acc[e, ACC_TAIL_STEPS] += 1.0
+        if done[e]:
+            n_done += 1
+    return n_done
+
+
+@njit(cache=True)
+def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs):
+    """Observation rows of the swarms with ``selected[e]`` (after a reset or a state change)."""
+    n_agents = ip[I_N]
+    k_slots = ip[I_K]
+    nb_idx = np.zeros(max(k_slots, 1), np.int64)
+    nb_d2 = np.zeros(max(k_slots, 1), np.float64)
+    dummy_action = np.zeros((1, 4), np.float64)
+    dummy_vec = np.zeros(n_agents, np.float64)
+    dummy_rew = np.zeros(1, np.float32)
+    dummy_terms = np.zeros((5, 1), np.float32)
+    d2mat = np.zeros((n_agents, n_agents), np.float64)
+    for e in range(selected.shape[0]):
+        if selected[e]:
+            base = e * n_agents
+            for a in range(n_agents):
+                for b in range(n_agents):
+                    d2 = 0.0
+                    for k in range(3):
+                        d = pos[base + b, k] - pos[base + a, k]
+                        d2 += d * d
+                    d2mat[a, b] = d2
+            observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, d2mat, rng, fp, ip,
+                          obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False)
+
+
+@njit(cache=True)
+def refresh_contacts_kernel(selected, pos, contact, fp, ip):
+    """Set the contact memory of the selected swarms to the current touching pairs (no new-contact count)."""
+    n_agents = ip[I_N]
+    cd2 = fp[F_COLL_DIST] * fp[F_COLL_DIST]
+    for e in range(selected.shape[0]):
+        if not selected[e]:
+            continue
+        base = e * n_agents
+        for a in range(n_agents):
+            for b in range(n_agents):
+                contact[e, a, b] = 0
+            for b in range(a + 1, n_agents):
+                d2 = 0.0
+                for k in range(3):
+                    d = pos[base + b, k] - pos[base + a, k]
+                    d2 += d * d
+                contact[e, a, b] = 1 if d2 <= cd2 else 0
+
+
+@njit(cache=True)
+def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
+                 spawn_half, spawn_min_z, spawn_min_sep):
+    """Start a new episode for the selected swarms: drones at rest, motors off, random yaw, positions
+    uniform in the box ``center +- spawn_half`` (z range cut to [spawn_min_z, ceiling]), at least
+    ``spawn_min_sep`` apart (rejection sampling, 100 tries per drone, then accepted anyway)."""
+    n_agents = ip[I_N]
+    half = fp[F_ROOM_HALF]
+    height = fp[F_ROOM_H]
+    sep2 = spawn_min_sep * spawn_min_sep
+    for e in range(selected.shape[0]):
+        if not selected[e]:
+            continue
+        base = e * n_agents
+        z_lo = max(center[e, 2] - spawn_half, spawn_min_z)
+        z_hi = min(max(center[e, 2] + spawn_half, z_lo), height)
+        for a in range(n_agents):
+            i = base + a
+            x, y, z = 0.0, 0.0, 0.0
+            for _ in range(100):
+                x = min(max(center[e, 0] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
+                y = min(max(center[e, 1] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
+                z = z_lo + (z_hi - z_lo) * uniform(rng, e)
+                ok = True
+                for b in range(a):
+                    j = base + b
+                    d2 = (pos[j, 0] - x) ** 2 + (pos[j, 1] - y) ** 2 + (pos[j, 2] - z) ** 2
+                    if d2 < sep2:
+                        ok = False
+                        break
+                if ok:
+                    break
+            pos[i, 0], pos[i, 1], pos[i, 2] = x, y, z
+            yaw = 2.0 * np.pi * uniform(rng, e)
+            cy, sy = np.cos(yaw), np.sin(yaw)
+            rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2] = cy, -sy, 0.0
+            rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2] = sy, cy, 0.0
+            rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2] = 0.0, 0.0, 1.0
+            for k in range(3):
+                vel[i, k] = 0.0
+                omega[i, k] = 0.0
+            for k in range(4):
+                motor[i, k] = 0.0
+                ou[i, k] = 0.0
+            room_contact[i] = 0
+
+
+@njit(cache=True)
+def all_finite(x):
+    """True if every entry of the 2-D array ``x`` is finite (no temporary array)."""
+    for r in range(x.shape[0]):
+        for c in range(x.shape[1]):
+            if not np.isfinite(x[r, c]):
+                return False
+    return True

@@ -1,0 +1,126 @@
+"""Pack an ``EnvConfig`` into the two flat parameter arrays the kernels read.
+
+Kernels take every constant at run time (not as compile-time globals), so one compiled kernel serves
+every configuration and the numba cache stays valid when a config changes.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from quad_env.config import EnvConfig
+
+# ---------------------------------------------------------------- float parameters (float64 [NUM_F])
+F_DT = 0  # physics dt, s
+F_CTRL_DT = 1  # control dt, s
+F_MASS = 2
+F_GRAV = 3
+F_IXX = 4
+F_IYY = 5
+F_IZZ = 6
+F_ARM = 7  # motor offset along body x and y, m
+F_TMAX = 8  # max thrust per motor, N
+F_KTAU = 9  # yaw torque per newton of thrust, m
+F_MOTOR_GAIN = 10  # first-order lag gain per physics step
+F_OMEGA_MAX = 11
+F_OU_THETA = 12
+F_OU_SIGMA = 13
+F_DRAG = 14  # drag_coeff / mass, 1/s
+F_FLOOR_Z = 15
+F_ROOM_HALF = 16
+F_ROOM_H = 17
+F_WALL_REST = 18
+F_COLL_DIST = 19
+F_COLL_REST = 20
+F_COLL_KICK = 21
+F_DW_ACC = 22
+F_DW_LEN = 23
+F_DW_RAD = 24
+F_SENSE_R = 25  # inf when unlimited
+F_NOISE_POS = 26
+F_NOISE_VEL = 27
+F_NOISE_OMEGA = 28
+F_C_POS = 29
+F_C_COLL = 30
+F_C_PROX = 31
+F_PROX_DIST = 32
+F_C_OMEGA = 33
+F_C_ACTION = 34
+NUM_F = 35
+
+# ---------------------------------------------------------------- int parameters (int64 [NUM_I])
+I_N = 0  # drones per swarm
+I_K = 1  # neighbour slots
+I_SUBSTEPS = 2
+I_EP_STEPS = 3  # control steps per episode
+I_FULL_NB = 4  # 1: "full" neighbour blocks (21), 0: "pos_vel" (6)
+I_THRUST_NOISE = 5
+I_SENSOR_NOISE = 6
+I_COLL_KICK = 7  # 1: random body-rate kick on collisions
+I_DOWNWASH = 8
+I_REORTHO = 9  # re-orthonormalise every this many control steps
+I_TAIL_STEPS = 10  # control steps in the last 5 s (episode stat dist_last_5s)
+I_OBS_DIM = 11
+I_NB_DIM = 12  # entries per neighbour block
+NUM_I = 13
+
+# Reward terms, in the order of the kernel's ``terms`` rows.
+REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action")
+
+
+def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
+    """Return ``(fparams float64 [NUM_F], iparams int64 [NUM_I])`` for ``cfg``.
+
+    ``noise=False`` switches off thrust noise, sensor noise and the random collision kick whatever the config
+    says (the low-level, deterministic stepping mode).
+    """
+    p, r = cfg.physics, cfg.reward
+    f = np.zeros(NUM_F, np.float64)
+    f[F_DT] = cfg.physics_dt
+    f[F_CTRL_DT] = cfg.control_dt
+    f[F_MASS] = p.mass
+    f[F_GRAV] = p.gravity
+    f[F_IXX], f[F_IYY], f[F_IZZ] = p.inertia
+    f[F_ARM] = p.arm_xy
+    f[F_TMAX] = p.thrust_to_weight * p.mass * p.gravity / 4.0
+    f[F_KTAU] = p.torque_to_thrust
+    f[F_MOTOR_GAIN] = min(1.0, cfg.physics_dt / p.motor_time_constant)
+    f[F_OMEGA_MAX] = p.omega_max
+    f[F_OU_THETA] = p.thrust_noise_theta
+    f[F_OU_SIGMA] = p.thrust_noise_sigma
+    f[F_DRAG] = cfg.drag_coeff / p.mass
+    f[F_FLOOR_Z] = p.floor_z
+    f[F_ROOM_HALF] = p.room_half_width
+    f[F_ROOM_H] = p.room_height
+    f[F_WALL_REST] = p.wall_restitution
+    f[F_COLL_DIST] = p.collision_dist
+    f[F_COLL_REST] = p.collision_restitution
+    f[F_COLL_KICK] = p.collision_kick
+    f[F_DW_ACC] = p.downwash_accel
+    f[F_DW_LEN] = p.downwash_length
+    f[F_DW_RAD] = p.downwash_radius
+    f[F_SENSE_R] = np.inf if cfg.sensing_radius is None else cfg.sensing_radius
+    f[F_NOISE_POS] = p.sensor_noise_pos
+    f[F_NOISE_VEL] = p.sensor_noise_vel
+    f[F_NOISE_OMEGA] = p.sensor_noise_omega
+    f[F_C_POS] = r.pos
+    f[F_C_COLL] = r.collision
+    f[F_C_PROX] = r.proximity
+    f[F_PROX_DIST] = r.proximity_dist
+    f[F_C_OMEGA] = r.omega
+    f[F_C_ACTION] = r.action
+
+    i = np.zeros(NUM_I, np.int64)
+    i[I_N] = cfg.num_agents
+    i[I_K] = cfg.num_neighbors
+    i[I_SUBSTEPS] = cfg.substeps
+    i[I_EP_STEPS] = cfg.episode_steps
+    i[I_FULL_NB] = 1 if cfg.neighbor_obs == "full" else 0
+    i[I_THRUST_NOISE] = int(noise and cfg.thrust_noise)
+    i[I_SENSOR_NOISE] = int(noise and cfg.sensor_noise)
+    i[I_COLL_KICK] = int(noise and p.collision_kick > 0)
+    i[I_DOWNWASH] = int(cfg.downwash)
+    i[I_REORTHO] = p.reortho_interval
+    i[I_TAIL_STEPS] = min(cfg.episode_steps, int(round(5.0 / cfg.control_dt)))
+    i[I_OBS_DIM] = obs_dim
+    i[I_NB_DIM] = 21 if cfg.neighbor_obs == "full" else 6
+    return f, i

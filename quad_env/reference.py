@@ -1,0 +1,171 @@
+"""Plain-numpy float64 reference of one noise-free control step (for tests; slow, not for training).
+
+Written from the model equations with numpy matrix algebra, independently of the kernels' hand-unrolled
+code, so the tests can check the kernels against it (``tests/quad_env/test_reference.py``).
+"""
+from __future__ import annotations
+
+from typing import Dict, Tuple
+
+import numpy as np
+
+from quad_env.config import EnvConfig
+
+# Motor positions (x, y) over arm_xy and spin signs: (+x,-y), (-x,-y), (-x,+y), (+x,+y).
+MOTOR_XY = np.array([[1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
+MOTOR_SPIN = np.array([-1.0, 1.0, -1.0, 1.0])
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """[..., 3] -> [..., 3, 3] cross-product matrices."""
+    out = np.zeros(w.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
+    return out
+
+
+def rodrigues(w: np.ndarray, dt: float) -> np.ndarray:
+    """exp(dt [w]_x) for [M, 3] rates."""
+    angle = np.linalg.norm(w, axis=-1) * dt  # [M]
+    safe = np.where(angle > 0, angle, 1.0)
+    K = hat(w * dt / safe[:, None])
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    E = np.eye(3) + s * K + (1 - c) * (K @ K)
+    return np.where((angle > 1e-12 * dt)[:, None, None], E, np.eye(3))
+
+
+def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvConfig, step_count: np.ndarray,
+                   contact: np.ndarray) -> Tuple[Dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray,
+                                                 np.ndarray]:
+    """One control step of all swarms with every noise source off.
+
+    Args:
+        state: dict of float64 arrays pos, vel, rot, omega, motor, goal (shapes as ``DroneState``).
+        actions: [M, 4]; step_count: [E] control steps done before this one; contact: [E, N, N] (a < b).
+    Returns:
+        new_state, obs [M, D] (float64), rew [M], terms [5, M], new_contact [E, N, N].
+    """
+    p, rc = cfg.physics, cfg.reward
+    N, K = cfg.num_agents, cfg.num_neighbors
+    M = actions.shape[0]
+    E = M // N
+    dt, ctrl_dt = cfg.physics_dt, cfg.control_dt
+    J = np.diag(p.inertia)
+    Jinv = np.diag(1.0 / np.asarray(p.inertia))
+    tmax = p.thrust_to_weight * p.mass * p.gravity / 4
+    gain = min(1.0, dt / p.motor_time_constant)
+    pos, vel = state["pos"].copy(), state["vel"].copy()
+    rot, omega = state["rot"].copy(), state["omega"].copy()
+    motor, goal = state["motor"].copy(), state["goal"].copy()
+
+    u = np.clip(actions.astype(np.float64), -1, 1)
+    cmd = (u + 1) / 2  # [M, 4]
+    arms = np.concatenate([MOTOR_XY * p.arm_xy, np.zeros((4, 1))], axis=1)  # [4, 3]
+    for _ in range(cfg.substeps):
+        motor = motor + gain * (np.sqrt(cmd) - motor)
+        T = tmax * np.clip(motor ** 2, 0, 1)  # [M, 4]
+        forces = np.zeros((M, 4, 3))
+        forces[..., 2] = T
+        tau = np.cross(arms[None], forces).sum(1)  # [M, 3]
+        tau[:, 2] += p.torque_to_thrust * (T * MOTOR_SPIN).sum(1)
+        thrust_world = rot @ np.array([0.0, 0.0, 1.0]) * T.sum(1, keepdims=True)
+        acc = thrust_world / p.mass - np.array([0, 0, p.gravity]) - cfg.drag_coeff / p.mass * vel
+        Jw = omega @ J
+        omega_dot = (tau - np.cross(omega, Jw)) @ Jinv
+        pos = pos + dt * vel
+        vel = vel + dt * acc
+        omega = np.clip(omega + dt * omega_dot, -p.omega_max, p.omega_max)
+        rot = rot @ rodrigues(omega, dt)
+        # floor: land (rest, level keeping yaw) unless taking off
+        on_floor = pos[:, 2] <= p.floor_z
+        pos[:, 2] = np.where(on_floor, p.floor_z, pos[:, 2])
+        land = on_floor & (vel[:, 2] <= 0)
+        yaw = np.arctan2(rot[:, 1, 0], rot[:, 0, 0])
+        level = np.zeros((M, 3, 3))
+        level[:, 0, 0], level[:, 0, 1] = np.cos(yaw), -np.sin(yaw)
+        level[:, 1, 0], level[:, 1, 1] = np.sin(yaw), np.cos(yaw)
+        level[:, 2, 2] = 1
+        vel[land] = 0
+        omega[land] = 0
+        rot[land] = level[land]
+        ceiling = ~on_floor & (pos[:, 2] > p.room_height)
+        vel[:, 2] = np.where(ceiling & (vel[:, 2] > 0), -p.wall_restitution * vel[:, 2], vel[:, 2])
+        pos[:, 2] = np.where(ceiling, p.room_height, pos[:, 2])
+        for ax in (0, 1):
+            hi, lo = pos[:, ax] > p.room_half_width, pos[:, ax] < -p.room_half_width
+            out_vel = (hi & (vel[:, ax] > 0)) | (lo & (vel[:, ax] < 0))
+            vel[:, ax] = np.where(out_vel, -p.wall_restitution * vel[:, ax], vel[:, ax])
+            pos[:, ax] = np.clip(pos[:, ax], -p.room_half_width, p.room_half_width)
+
+    steps = step_count + 1
+    for e in range(E):
+        if steps[e] % p.reortho_interval == 0:
+            R = rot[e * N:(e + 1) * N]
+            rot[e * N:(e + 1) * N] = 1.5 * R - 0.5 * R @ np.swapaxes(R, 1, 2) @ R
+
+    # ---- pair effects, in the kernel's order (a < b), since collision responses compound
+    contact = contact.copy()
+    new_coll = np.zeros(M)
+    prox = np.zeros(M)
+    for e in range(E):
+        for a in range(N):
+            for b in range(a + 1, N):
+                i, j = e * N + a, e * N + b
+                delta = pos[j] - pos[i]
+                d = np.linalg.norm(delta)
+                prox[[i, j]] += max(0.0, 1 - d / rc.proximity_dist)
+                if d <= p.collision_dist:
+                    if not contact[e, a, b]:
+                        contact[e, a, b] = 1
+                        new_coll[[i, j]] += 1
+                    n = delta / d if d > 0 else np.array([0.0, 0.0, 1.0])
+                    ua, ub = vel[i] @ n, vel[j] @ n
+                    if ub - ua < 0:
+                        vel[i] += (p.collision_restitution * ub - ua) * n
+                        vel[j] += (p.collision_restitution * ua - ub) * n
+                else:
+                    contact[e, a, b] = 0
+                if cfg.downwash:
+                    for up, down, sign in ((i, j, 1.0), (j, i, -1.0)):
+                        axis = rot[up][:, 2]
+                        depth = -sign * (delta @ axis)
+                        radial2 = d * d - depth * depth
+                        if 0 < depth < p.downwash_length and radial2 < p.downwash_radius ** 2:
+                            vel[down] -= p.downwash_accel * (1 - depth / p.downwash_length) * ctrl_dt * axis
+
+    # ---- observations
+    nb_dim = 21 if cfg.neighbor_obs == "full" else 6
+    D = 18 + K * (nb_dim + 1)
+    obs = np.zeros((M, D))
+    obs[:, 0:3] = pos - goal
+    obs[:, 3:6] = vel
+    obs[:, 6:15] = rot.reshape(M, 9)
+    obs[:, 15:18] = omega
+    sense = np.inf if cfg.sensing_radius is None else cfg.sensing_radius
+    for e in range(E):
+        idx = np.arange(e * N, (e + 1) * N)
+        for a in range(N):
+            i = idx[a]
+            others = idx[idx != i]
+            d2 = ((pos[others] - pos[i]) ** 2).sum(1)
+            order = np.lexsort((others, d2))  # by distance, then by index
+            chosen = [others[o] for o in order[:K] if d2[o] <= sense ** 2]
+            for k, j in enumerate(chosen):
+                off = 18 + k * nb_dim
+                block = [pos[j] - pos[i], vel[j] - vel[i]]
+                if nb_dim == 21:
+                    block += [rot[j].reshape(9), omega[j], goal[j] - pos[j]]
+                obs[i, off:off + nb_dim] = np.concatenate(block)
+                obs[i, 18 + K * nb_dim + k] = 1.0
+
+    # ---- reward terms
+    terms = np.stack([
+        -rc.pos * ctrl_dt * np.linalg.norm(pos - goal, axis=1),
+        -rc.collision * new_coll,
+        -rc.proximity * ctrl_dt * prox,
+        -rc.omega * ctrl_dt * np.linalg.norm(omega, axis=1),
+        -rc.action * ctrl_dt * np.linalg.norm(u, axis=1),
+    ])
+    new_state = dict(pos=pos, vel=vel, rot=rot, omega=omega, motor=motor, goal=goal)
+    return new_state, obs, terms.sum(0), terms, contact

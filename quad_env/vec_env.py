@@ -1,0 +1,318 @@
+"""VecQuadEnv: E independent swarms of N drones, stepped together by one numba kernel.
+
+Rows: drone a of swarm e is row ``e * N + a`` of every per-drone array. Swarms auto-reset when their
+episode ends (a truncation: ``terminated`` is always False). The arrays that ``reset``/``step`` return
+(and ``final_obs``, ``reward_terms``) are preallocated buffers that the next call overwrites: copy what
+you keep.
+
+Seeding: ``seed`` makes one SplitMix64 stream per swarm (``quad_env.rng``); every random draw (spawn,
+goals, thrust noise, sensor noise, collision kicks) comes from the swarm's stream in a fixed order, so the
+same seed and the same actions give bit-identical transitions.
+
+Non-finite states: the kernel checks every drone after its physics. With ``cfg.nan_policy == "raise"``
+(default) ``step`` raises ``FloatingPointError`` naming the swarms, and the env must be ``reset()``.
+With ``"reset"`` the swarm's rows are reported truncated with reward 0, ``final_obs`` holds the last
+finite observation, a ``RuntimeWarning`` is issued, the episode stats carry ``diverged=True`` and the
+swarm restarts.
+
+Low-level state API (model validation against flight logs)::
+
+    env = VecQuadEnv(EnvConfig(num_agents=1, sim_dtype="float64"), num_envs=1, seed=0)
+    env.set_state(pos=[[0, 0, 1]], vel=[[0, 0, 0]], rot=[np.eye(3)], omega=[[0, 0, 0]],
+                  motor=[[0.7, 0.7, 0.7, 0.7]])
+    s = env.simulate(actions)          # one control step, no noise, no auto-reset
+    s.pos, s.vel, s.rot, s.omega, s.motor  # float64 copies
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from quad_env.config import EnvConfig
+from quad_env.kernels import (
+    ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_RETURN, ACC_ROOM, ACC_TAIL_STEPS, ACC_TERMS, NUM_ACC,
+    all_finite, observe_kernel, refresh_contacts_kernel, spawn_kernel, step_kernel,
+)
+from quad_env.obs_layout import ObsLayout
+from quad_env.params import I_EP_STEPS, REWARD_TERMS, pack_params
+from quad_env.rng import seed_streams
+from quad_env.scenarios import SPAWN_HALF, SPAWN_MIN_SEP, SPAWN_MIN_Z, make_scenario
+
+_NEVER = np.iinfo(np.int64).max // 2  # episode length used by ``simulate`` (no episode end)
+
+
+@dataclass
+class DroneState:
+    """Full simulator state of all M = E * N drones (float64 copies; row e * N + a)."""
+
+    pos: np.ndarray  # [M, 3] world position, m
+    vel: np.ndarray  # [M, 3] world velocity, m/s
+    rot: np.ndarray  # [M, 3, 3] body -> world rotation
+    omega: np.ndarray  # [M, 3] body rates, rad/s
+    motor: np.ndarray  # [M, 4] normalised rotor speed in [0, 1] (thrust fraction = motor ** 2)
+    thrust_noise: np.ndarray  # [M, 4] Ornstein-Uhlenbeck thrust-noise state
+    goal: np.ndarray  # [M, 3] goal position, m
+
+
+class VecQuadEnv:
+    """E swarms x N drones. See the module docstring for rows, buffers, seeding and the NaN policy.
+
+    Args:
+        cfg: environment config (validated here).
+        num_envs: E, the number of independent swarms.
+        seed: one integer seed for every random draw.
+        auto_reset: restart a swarm as soon as its episode ends (rollout workers). With False a
+            finished swarm must be ``reset()`` before the next ``step`` (the single-swarm adapters).
+    """
+
+    def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, auto_reset: bool = True):
+        if not isinstance(cfg, EnvConfig):
+            raise TypeError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
+        cfg.validate()
+        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
+        self.cfg = cfg
+        self.scenario = make_scenario(cfg.scenario, cfg)
+        self.layout = ObsLayout(cfg.num_neighbors, cfg.neighbor_obs)
+        self.num_envs = E = int(num_envs)
+        self.num_agents = N = cfg.num_agents
+        self.num_drones = M = E * N
+        self.obs_dim = D = self.layout.dim
+        self.auto_reset = auto_reset
+        self.scenario.allocate(E)
+
+        dt = np.float32 if cfg.sim_dtype == "float32" else np.float64
+        # ---- simulator state (structure of arrays)
+        self._pos = np.zeros((M, 3), dt)
+        self._vel = np.zeros((M, 3), dt)
+        self._rot = np.zeros((M, 3, 3), dt)
+        self._omega = np.zeros((M, 3), dt)
+        self._motor = np.zeros((M, 4), dt)
+        self._ou = np.zeros((M, 4), dt)
+        self._goal = np.zeros((M, 3), dt)
+        self._center = np.zeros((E, 3), np.float64)
+        self._contact = np.zeros((E, N, N), np.uint8)
+        self._room_contact = np.zeros(M, np.uint8)
+        self._step_count = np.zeros(E, np.int64)
+        self._acc = np.zeros((E, NUM_ACC), np.float64)
+        self._rng = seed_streams(seed, E)
+        self._fp, self._ip = pack_params(cfg, D, noise=True)
+        self._fp_quiet, self._ip_quiet = pack_params(cfg, D, noise=False)
+        self._ip_quiet[I_EP_STEPS] = _NEVER
+
+        # ---- output buffers (overwritten by every call)
+        self._obs = np.zeros((M, D), np.float32)
+        self._rew = np.zeros(M, np.float32)
+        self._terms = np.zeros((len(REWARD_TERMS), M), np.float32)
+        self._terminated = np.zeros(M, bool)  # never set: the episode end is a truncation
+        self._truncated = np.zeros(M, bool)
+        self._final_obs = np.zeros((M, D), np.float32)
+        self._done = np.zeros(E, bool)
+        self._diverged = np.zeros(E, bool)
+        self._needs_reset = np.zeros(E, bool)
+        self._action_buf = np.zeros((M, 4), np.float32)
+        self.reward_terms: Dict[str, np.ndarray] = {name: self._terms[k] for k, name in enumerate(REWARD_TERMS)}
+        self._episode_stats: List[dict] = []
+        self.reset()
+
+    # ------------------------------------------------------------------ public buffers
+    @property
+    def final_obs(self) -> np.ndarray:
+        """float32 [M, D]: for rows whose episode ended at the last step, the true last observation.
+        Other rows hold stale values."""
+        return self._final_obs
+
+    # ------------------------------------------------------------------ episode API
+    def seed(self, seed: int) -> None:
+        """Restart every swarm's random stream from ``seed`` (takes effect from the next draw)."""
+        self._rng[:] = seed_streams(seed, self.num_envs)
+
+    def reset(self, seed: Optional[int] = None) -> np.ndarray:
+        """Start a new episode in every swarm; returns obs float32 [E*N, D] (a reused buffer).
+        Episodes in progress are dropped without stats."""
+        if seed is not None:
+            self.seed(seed)
+        everyone = np.ones(self.num_envs, bool)
+        self._reset_swarms(everyone)
+        self._truncated[:] = False
+        self._rew[:] = 0.0
+        self._terms[:] = 0.0
+        return self._obs
+
+    def step(self, actions: np.ndarray):
+        """Advance every swarm by one control step.
+
+        Args:
+            actions: [E*N, 4] float array; clipped to [-1, 1]; motor command = (a + 1) / 2.
+        Returns:
+            obs float32 [E*N, D], rew float32 [E*N], terminated bool [E*N] (always False),
+            truncated bool [E*N] (reused buffers). Rows that ended hold the first observation of the
+            next episode in ``obs`` and the true last one in ``final_obs``.
+        """
+        act = self._check_actions(actions)
+        if self._needs_reset.any():
+            raise RuntimeError(f"swarms {np.flatnonzero(self._needs_reset).tolist()} finished their episode "
+                               "(auto_reset=False): call reset() before step()")
+        if self.scenario.dynamic:
+            self.scenario.update(self._goal, self._step_count, self._rng)
+        self._done[:] = False
+        n_done = step_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
+                             self._goal, self._contact, self._room_contact, self._rng, self._step_count,
+                             self._fp, self._ip, self._obs, self._rew, self._terms, self._done, self._diverged,
+                             self._acc)
+        if n_done:
+            self._finish_episodes()
+        else:
+            self._truncated[:] = False
+        return self._obs, self._rew, self._terminated, self._truncated
+
+    def pop_episode_stats(self) -> List[dict]:
+        """One dict per swarm episode finished since the last call (then forgotten).
+
+        Keys: ``scenario``; ``return`` (episode reward, mean per agent); ``length`` (control steps);
+        ``dist_final`` (mean distance to goal after the last step); ``dist_last_5s`` (mean over the last
+        5 s, or the whole episode if shorter); ``collisions`` (new drone-drone contacts, pairs);
+        ``room_contacts`` (new floor/wall/ceiling contacts, drones); ``rew_<term>`` (per-term episode
+        reward, mean per agent: they sum to ``return``); ``diverged`` (the episode ended on a
+        non-finite state).
+        """
+        out, self._episode_stats = self._episode_stats, []
+        return out
+
+    def observe(self) -> np.ndarray:
+        """Rebuild the observation of the current state (sensor noise as configured) and return the
+        obs buffer float32 [E*N, D]."""
+        observe_kernel(np.ones(self.num_envs, bool), self._pos, self._vel, self._rot, self._omega, self._goal,
+                       self._rng, self._fp, self._ip, self._obs)
+        return self._obs
+
+    # ------------------------------------------------------------------ low-level state API
+    def get_state(self) -> DroneState:
+        """Copy of the full state of every drone (float64)."""
+        f = lambda x: np.array(x, dtype=np.float64)  # noqa: E731
+        return DroneState(pos=f(self._pos), vel=f(self._vel), rot=f(self._rot), omega=f(self._omega),
+                          motor=f(self._motor), thrust_noise=f(self._ou), goal=f(self._goal))
+
+    def set_state(self, pos=None, vel=None, rot=None, omega=None, motor=None, thrust_noise=None,
+                  goal=None) -> None:
+        """Overwrite any part of the state of all drones (arrays shaped as in ``DroneState``).
+
+        Rotations must be orthonormal with det +1 (to 1e-6), motor speeds in [0, 1]. Afterwards the
+        contact memory is set to the pairs touching now (they do not count as new collisions) and the
+        observation buffer is rebuilt.
+        """
+        M = self.num_drones
+        spec = dict(pos=(pos, (M, 3), self._pos), vel=(vel, (M, 3), self._vel), rot=(rot, (M, 3, 3), self._rot),
+                    omega=(omega, (M, 3), self._omega), motor=(motor, (M, 4), self._motor),
+                    thrust_noise=(thrust_noise, (M, 4), self._ou), goal=(goal, (M, 3), self._goal))
+        checked = {}
+        for name, (value, shape, _) in spec.items():
+            if value is None:
+                continue
+            arr = np.asarray(value, dtype=np.float64)
+            if arr.shape != shape:
+                raise ValueError(f"set_state: {name} must have shape {shape}, got {arr.shape}")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"set_state: {name} contains NaN or inf")
+            checked[name] = arr
+        if "rot" in checked:
+            r = checked["rot"]
+            err = np.abs(np.einsum("mji,mjk->mik", r, r) - np.eye(3)).max()
+            if err > 1e-6 or (np.linalg.det(r) < 0).any():
+                raise ValueError(f"set_state: rot must be rotation matrices (|R^T R - I| = {err:.2e}, det > 0)")
+        if "motor" in checked and ((checked["motor"] < 0) | (checked["motor"] > 1)).any():
+            raise ValueError("set_state: motor speeds must be in [0, 1]")
+        for name, arr in checked.items():
+            spec[name][2][...] = arr
+        everyone = np.ones(self.num_envs, bool)
+        refresh_contacts_kernel(everyone, self._pos, self._contact, self._fp, self._ip)
+        self._room_contact[:] = 0
+        self.observe()
+
+    def simulate(self, actions: np.ndarray, noise: bool = False) -> DroneState:
+        """One control step of every drone with the given actions and return the new state.
+
+        With ``noise=False`` there is no thrust noise, no sensor noise and no random collision kick; the
+        step is deterministic. No episode ends and nothing auto-resets (the episode clock still advances,
+        which sets the re-orthonormalisation schedule). Observation, reward and ``reward_terms`` buffers
+        are updated as in ``step``.
+        """
+        act = self._check_actions(actions)
+        fp, ip = (self._fp, self._ip.copy()) if noise else (self._fp_quiet, self._ip_quiet)
+        ip[I_EP_STEPS] = _NEVER
+        scratch_acc = np.zeros_like(self._acc)
+        done = np.zeros(self.num_envs, bool)
+        diverged = np.zeros(self.num_envs, bool)
+        step_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou, self._goal,
+                    self._contact, self._room_contact, self._rng, self._step_count, fp, ip, self._obs,
+                    self._rew, self._terms, done, diverged, scratch_acc)
+        if diverged.any():
+            raise FloatingPointError(f"simulate: non-finite state in swarms {np.flatnonzero(diverged).tolist()}")
+        return self.get_state()
+
+    # ------------------------------------------------------------------ internals
+    def _check_actions(self, actions) -> np.ndarray:
+        a = actions if isinstance(actions, np.ndarray) else np.asarray(actions)
+        if a.shape != (self.num_drones, 4):
+            raise ValueError(f"actions must have shape (E*N, 4) = ({self.num_drones}, 4), got {a.shape}")
+        if a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous:
+            np.copyto(self._action_buf, a, casting="unsafe")
+            a = self._action_buf
+        if not all_finite(a):
+            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+            raise ValueError(f"actions contain NaN or inf (rows {bad[:10].tolist()}{'...' if bad.size > 10 else ''})")
+        return a
+
+    def _reset_swarms(self, selected: np.ndarray) -> None:
+        self.scenario.reset(selected, self._goal, self._center, self._rng)
+        spawn_kernel(selected, self._center, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
+                     self._room_contact, self._rng, self._fp, self._ip, SPAWN_HALF, SPAWN_MIN_Z, SPAWN_MIN_SEP)
+        refresh_contacts_kernel(selected, self._pos, self._contact, self._fp, self._ip)
+        self._step_count[selected] = 0
+        self._acc[selected] = 0.0
+        self._diverged[selected] = False
+        self._needs_reset[selected] = False
+        observe_kernel(selected, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
+                       self._ip, self._obs)
+
+    def _finish_episodes(self) -> None:
+        """Record stats, save final observations and restart the swarms that finished."""
+        done, N = self._done, self.num_agents
+        rows = np.repeat(done, N)
+        self._truncated[:] = rows
+        diverged = self._diverged & done
+        if diverged.any():
+            bad = np.flatnonzero(diverged).tolist()
+            if self.cfg.nan_policy == "raise":
+                self._needs_reset[:] = True
+                raise FloatingPointError(f"non-finite drone state in swarms {bad} (env.nan_policy='raise'); "
+                                         "call reset() to continue")
+            warnings.warn(f"non-finite drone state in swarms {bad}: resetting them (env.nan_policy='reset')",
+                          RuntimeWarning, stacklevel=3)
+        self._final_obs[rows] = self._obs[rows]
+        for e in np.flatnonzero(done):
+            self._episode_stats.append(self._stats_of(int(e)))
+        if self.auto_reset:
+            self._reset_swarms(done.copy())
+        else:
+            self._needs_reset |= done
+
+    def _stats_of(self, e: int) -> dict:
+        acc, N = self._acc[e], self.num_agents
+        tail_steps = acc[ACC_TAIL_STEPS]
+        stats = {
+            "scenario": self.scenario.episode_name(e),
+            "return": acc[ACC_RETURN] / N,
+            "length": int(self._step_count[e]),
+            "dist_final": acc[ACC_DIST_FINAL],
+            "dist_last_5s": acc[ACC_DIST_TAIL] / tail_steps if tail_steps > 0 else float("nan"),
+            "collisions": int(acc[ACC_COLLISIONS]),
+            "room_contacts": int(acc[ACC_ROOM]),
+            "diverged": bool(self._diverged[e]),
+        }
+        for k, name in enumerate(REWARD_TERMS):
+            stats[f"rew_{name}"] = acc[ACC_TERMS + k] / N
+        return stats

@@ -1,0 +1,121 @@
+"""The numba step kernel equals the plain-numpy float64 reference on random states (noise off)."""
+import numpy as np
+import pytest
+
+from quad_env import PhysicsConfig, VecQuadEnv
+from quad_env.kernels import NUM_ACC, step_kernel
+from quad_env.reference import reference_step
+
+
+def random_rotations(rng, m):
+    q, r = np.linalg.qr(rng.normal(size=(m, 3, 3)))
+    q = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1
+    return q
+
+
+def random_state(rng, E, N):
+    """Random drones packed close enough for collisions, proximity and downwash; some at the floor and walls."""
+    M = E * N
+    pos = rng.uniform([-0.6, -0.6, 0.0], [0.6, 0.6, 1.2], (M, 3))
+    vel = rng.uniform(-3, 3, (M, 3))
+    rot = random_rotations(rng, M)
+    for e in range(E):
+        b = e * N
+        pos[b + 1] = pos[b] + rng.normal(size=3) * 0.03  # touching pair
+        vel[b + 1] = vel[b] - 2.0 * (pos[b + 1] - pos[b]) / 0.03  # ... approaching
+        pos[b + 2] = pos[b + 3] - rot[b + 3][:, 2] * 0.3  # below drone 3's rotor axis: downwash
+        pos[b + 3, 2] = max(pos[b + 3, 2], 0.5)
+        pos[b + 2] = pos[b + 3] - rot[b + 3][:, 2] * 0.3
+        pos[b + 4] = [4.99, -4.99, 0.05]  # corner, near the floor
+        vel[b + 4] = [3.0, -3.0, -3.0]
+    return dict(pos=pos, vel=vel, rot=rot, omega=rng.uniform(-45, 45, (M, 3)), motor=rng.uniform(0, 1, (M, 4)),
+                goal=rng.uniform(-2, 2, (M, 3)))
+
+
+def kernel_step(env, state, actions, step_count, contact):
+    """Run the kernel on float64 copies with float64 output buffers."""
+    s = {k: v.copy() for k, v in state.items()}
+    M, D, E = env.num_drones, env.obs_dim, env.num_envs
+    ou = np.zeros((M, 4))
+    contact = contact.copy()
+    steps = step_count.copy()
+    obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((5, M))
+    step_kernel(actions, s["pos"], s["vel"], s["rot"], s["omega"], s["motor"], ou, s["goal"], contact,
+                np.zeros(M, np.uint8), env._rng.copy(), steps, env._fp_quiet, env._ip_quiet, obs, rew, terms,
+                np.zeros(E, bool), np.zeros(E, bool), np.zeros((E, NUM_ACC)))
+    return s, obs, rew, terms, contact
+
+
+CASES = [
+    dict(num_agents=5, num_neighbors=3, neighbor_obs="full"),
+    dict(num_agents=5, num_neighbors=6, neighbor_obs="pos_vel", sensing_radius=0.5),
+    dict(num_agents=6, num_neighbors=2, neighbor_obs="full", drag_coeff=0.02, downwash=False),
+]
+
+
+@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("steps_done", [0, 49])  # 49: this step re-orthonormalises (every 50)
+def test_kernel_matches_numpy_reference(quiet_cfg, case, steps_done):
+    cfg = quiet_cfg(**case)
+    E = 3
+    env = VecQuadEnv(cfg, num_envs=E, seed=0)
+    rng = np.random.default_rng(steps_done + len(case))
+    events = dict(collisions=0, floor=0, clipped=0, downwash=0)
+    for trial in range(4):
+        state = random_state(rng, E, cfg.num_agents)
+        actions = rng.uniform(-1.3, 1.3, (env.num_drones, 4))
+        step_count = np.full(E, steps_done, np.int64)
+        contact = np.zeros((E, cfg.num_agents, cfg.num_agents), np.uint8)
+        ks, kobs, krew, kterms, kcontact = kernel_step(env, state, actions, step_count, contact)
+        rs, robs, rrew, rterms, rcontact = reference_step(state, actions, cfg, step_count, contact)
+        for name in ("pos", "vel", "rot", "omega", "motor"):
+            np.testing.assert_allclose(ks[name], rs[name], rtol=0, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(kobs, robs, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(kterms, rterms, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(krew, rrew, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(kcontact, rcontact)
+        events["collisions"] += int((rterms[1] < 0).sum())
+        events["floor"] += int((np.abs(rs["pos"][:, 2] - 0.046) < 1e-12).sum())
+        events["clipped"] += int((np.abs(rs["omega"]) == 40.0).sum())
+        if cfg.downwash:
+            no_dw = quiet_cfg(**{**case, "downwash": False})
+            events["downwash"] += int((np.abs(reference_step(state, actions, no_dw, step_count, contact)[0]["vel"]
+                                              - rs["vel"]).max(1) > 1e-6).sum())
+    if not cfg.downwash:
+        events.pop("downwash")
+    assert all(v > 0 for v in events.values()), events  # the random states exercise every branch
+
+
+def test_float32_state_tracks_the_reference(quiet_cfg):
+    """The float32 fast path runs the same kernel: it agrees with the reference to float32 precision."""
+    cfg = quiet_cfg(num_agents=5, num_neighbors=3, sim_dtype="float32")
+    env = VecQuadEnv(cfg, num_envs=2, seed=0)
+    rng = np.random.default_rng(1)
+    state = random_state(rng, 2, 5)
+    state["pos"][:, 2] += 1.0  # away from the floor, where rounding may decide landing
+    state32 = {k: v.astype(np.float32) for k, v in state.items()}
+    actions = rng.uniform(-1, 1, (10, 4)).astype(np.float32)
+    contact = np.zeros((2, 5, 5), np.uint8)
+    ks, kobs, _, _, _ = kernel_step(env, state32, actions, np.zeros(2, np.int64), contact)
+    rs, robs, _, _, _ = reference_step({k: v.astype(np.float64) for k, v in state32.items()}, actions, cfg,
+                                       np.zeros(2, np.int64), contact)
+    assert ks["pos"].dtype == np.float32
+    for name in ("pos", "vel", "rot", "motor"):
+        np.testing.assert_allclose(ks[name], rs[name], rtol=1e-5, atol=1e-5, err_msg=name)
+    np.testing.assert_allclose(ks["omega"], rs["omega"], rtol=1e-4, atol=1e-3)
+
+
+def test_reference_catches_a_wrong_kernel_constant(quiet_cfg):
+    """The comparison is sharp: a 1% heavier drone in the kernel is detected."""
+    cfg = quiet_cfg(num_agents=5, num_neighbors=3)
+    env = VecQuadEnv(cfg, num_envs=1, seed=0)
+    heavier = quiet_cfg(num_agents=5, num_neighbors=3, physics=dict(mass=0.028 * 1.01))
+    rng = np.random.default_rng(3)
+    state = random_state(rng, 1, 5)
+    actions = rng.uniform(-1, 1, (5, 4))
+    contact = np.zeros((1, 5, 5), np.uint8)
+    ks, *_ = kernel_step(env, state, actions, np.zeros(1, np.int64), contact)
+    rs, *_ = reference_step(state, actions, heavier, np.zeros(1, np.int64), contact)
+    assert np.abs(ks["vel"] - rs["vel"]).max() > 1e-6
+    assert PhysicsConfig().mass == 0.028
