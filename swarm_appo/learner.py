@@ -1,0 +1,173 @@
+"""Learning: V-trace-corrected APPO on fragments from the rollout workers.
+
+Read top to bottom: ``Learner.train(fragments)`` stacks fragments into one time-major batch,
+then for every epoch and every minibatch of whole trajectories (columns) it
+recomputes values with the current critic, folds truncation bootstraps into the rewards,
+runs V-trace, and takes one clipped-surrogate step. Steps whose policy lag exceeds
+``algo.max_policy_lag`` are masked out of every loss and statistic.
+"""
+from __future__ import annotations
+
+import warnings
+from typing import Any, Dict, List, Tuple
+
+import numpy as np
+import torch
+
+from swarm_appo.losses import appo_loss
+from swarm_appo.metrics import LagStats
+from swarm_appo.vtrace import fold_truncation_bootstrap, vtrace
+
+
+def stack_fragments(fragments: List[Dict[str, Any]]) -> Dict[str, np.ndarray]:
+    """Concatenate fragments along the trajectory axis B -> one batch ``[T, sum B, ...]``."""
+    out: Dict[str, Any] = {}
+    for key in ("obs", "actions", "log_probs", "values", "rewards", "terminated", "truncated"):
+        out[key] = np.concatenate([f[key] for f in fragments], axis=1)
+    out["last_obs"] = np.concatenate([f["last_obs"] for f in fragments], axis=0)  # [B, D]
+    versions, final_obs, final_idx, col = [], [], [], 0
+    for f in fragments:
+        T, B = f["rewards"].shape
+        versions.append(np.broadcast_to(f["policy_version"][:, None], (T, B)))
+        final_obs.append(f["final_obs"])
+        final_idx.append(f["final_idx"] + np.array([0, col]))
+        col += B
+    out["policy_version"] = np.concatenate(versions, axis=1)  # [T, B]
+    out["final_obs"] = np.concatenate(final_obs)  # [M, D]
+    out["final_idx"] = np.concatenate(final_idx)  # [M, 2] (t, b)
+    return out
+
+
+class Learner:
+    """Owns the model being trained, its optimizer and the policy version counter."""
+
+    def __init__(self, model: torch.nn.Module, algo, device: torch.device, seed: int):
+        self.algo = algo
+        self.device = device
+        self.model = model.to(device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=algo.lr, betas=tuple(algo.adam_betas),
+                                          eps=algo.adam_eps)
+        self.generator = torch.Generator().manual_seed(seed)
+        self.version = 0  # bumped once per train() call; published with the weights
+        self.num_updates = 0  # optimizer steps taken
+        self.skipped_updates = 0  # non-finite loss or gradient
+
+    # ------------------------------------------------------------------ weights
+    def cpu_weights(self) -> Tuple[int, Dict[str, torch.Tensor]]:
+        return self.version, {k: v.detach().to("cpu", copy=True) for k, v in self.model.state_dict().items()}
+
+    def state_dict(self) -> Dict[str, Any]:
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "version": self.version, "num_updates": self.num_updates,
+                "skipped_updates": self.skipped_updates, "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.version = state["version"]
+        self.num_updates = state["num_updates"]
+        self.skipped_updates = state.get("skipped_updates", 0)
+        self.generator.set_state(state["generator"])
+
+    # ------------------------------------------------------------------ training
+    def train(self, fragments: List[Dict[str, Any]]) -> Dict[str, float]:
+        algo, dev = self.algo, self.device
+        t, lag, valid = self._to_tensors(fragments)
+        T, B = t["rewards"].shape
+        lag_stats = LagStats()
+        lag_stats.update(lag, max_policy_lag=algo.max_policy_lag)
+        trunc_values_at = t["final_idx"]  # [M, 2]
+
+        cols_per_mb = max(1, algo.batch_size // T)
+        stats_sum: Dict[str, float] = {}
+        n_mb = 0
+        self.model.train()
+        for _epoch in range(algo.num_epochs):
+            perm = torch.randperm(B, generator=self.generator).to(dev)
+            for start in range(0, B, cols_per_mb):
+                cols = perm[start:start + cols_per_mb]  # [b]
+                stats = self._minibatch_step(t, cols, valid[:, cols], trunc_values_at)
+                if stats is None:
+                    continue
+                for k, v in stats.items():
+                    stats_sum[k] = stats_sum.get(k, 0.0) + v
+                n_mb += 1
+        self.version += 1
+        out = {f"losses/{k}": v / max(n_mb, 1) for k, v in stats_sum.items()}
+        out.update(lag_stats.summary())
+        out.update({"losses/skipped_updates": float(self.skipped_updates),
+                    "perf/policy_version": float(self.version), "perf/num_updates": float(self.num_updates)})
+        return out
+
+    def _to_tensors(self, fragments: List[Dict[str, Any]]):
+        batch = stack_fragments(fragments)
+        t = {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}
+        lag = self.version - t["policy_version"]  # [T, B] learner version - behaviour version
+        valid = lag <= self.algo.max_policy_lag  # [T, B]
+        return t, lag, valid
+
+    @torch.no_grad()
+    def loss_on(self, fragments: List[Dict[str, Any]]) -> float:
+        """The APPO loss of the current model on these fragments (all columns at once), no update."""
+        t, _, valid = self._to_tensors(fragments)
+        cols = torch.arange(t["rewards"].shape[1], device=self.device)
+        loss, _ = self._loss(t, cols, valid, t["final_idx"])
+        return float(loss)
+
+    def _loss(self, t: Dict[str, torch.Tensor], cols: torch.Tensor, valid: torch.Tensor,
+              final_idx: torch.Tensor):
+        """APPO loss on the whole trajectories ``cols``: values and V-trace targets from the current model."""
+        algo = self.algo
+        obs = t["obs"][:, cols]  # [T, b, D]
+        T, b, D = obs.shape
+        actions = t["actions"][:, cols]  # [T, b, A]
+        old_logp = t["log_probs"][:, cols]  # [T, b]
+        log_prob, entropy, values = self.model.evaluate(obs.reshape(T * b, D), actions.reshape(T * b, -1))
+        log_prob, entropy, values = (x.reshape(T, b) for x in (log_prob, entropy, values))
+
+        with torch.no_grad():
+            bootstrap = self.model.get_value(t["last_obs"][cols])  # [b]
+            # Truncated steps bootstrap from the value of the true final observation, not the reset one.
+            col_pos = torch.full((t["rewards"].shape[1],), -1, dtype=torch.long, device=obs.device)
+            col_pos[cols] = torch.arange(b, device=obs.device)
+            final_values = torch.zeros(T, b, device=obs.device)  # [T, b]
+            if final_idx.shape[0]:
+                sel = col_pos[final_idx[:, 1]] >= 0
+                if sel.any():
+                    fi = final_idx[sel]
+                    final_values[fi[:, 0], col_pos[fi[:, 1]]] = self.model.get_value(t["final_obs"][sel])
+            discounts = algo.gamma * (~t["terminated"][:, cols]).float()  # [T, b]
+            rewards, discounts = fold_truncation_bootstrap(
+                t["rewards"][:, cols], discounts, t["truncated"][:, cols], final_values, algo.gamma)
+            vt = vtrace(log_prob.detach() - old_logp, discounts, rewards, values.detach(), bootstrap,
+                        clip_rho_threshold=algo.vtrace_rho_clip, clip_c_threshold=algo.vtrace_c_clip,
+                        clip_pg_rho_threshold=algo.vtrace_pg_rho_clip)
+
+        return appo_loss(
+            log_prob.reshape(-1), old_logp.reshape(-1), vt.pg_advantages.reshape(-1), values.reshape(-1),
+            vt.vs.reshape(-1), entropy.reshape(-1), valid.reshape(-1).float(),
+            clip_ratio=algo.ppo_clip_ratio, value_coeff=algo.value_loss_coeff, entropy_coeff=algo.entropy_coeff,
+            old_values=t["values"][:, cols].reshape(-1), value_clip=algo.value_clip,
+            normalize_advantages=algo.normalize_advantages)
+
+    def _minibatch_step(self, t: Dict[str, torch.Tensor], cols: torch.Tensor, valid: torch.Tensor,
+                        final_idx: torch.Tensor):
+        loss, stats = self._loss(t, cols, valid, final_idx)
+        if not torch.isfinite(loss):
+            self.skipped_updates += 1
+            warnings.warn(f"non-finite loss ({loss.item()}) at update {self.num_updates}: update skipped")
+            return None
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.algo.max_grad_norm)
+        if not torch.isfinite(grad_norm):
+            self.optimizer.zero_grad(set_to_none=True)
+            self.skipped_updates += 1
+            warnings.warn(f"non-finite gradient norm at update {self.num_updates}: update skipped")
+            return None
+        self.optimizer.step()
+        self.num_updates += 1
+        stats = {k: float(v) for k, v in stats.items()}
+        stats["grad_norm"] = float(grad_norm)
+        stats["loss"] = float(loss.detach())
+        return stats

@@ -1,0 +1,172 @@
+"""Samplers: where fragments come from. Serial (in-process, deterministic) or Ray actors (asynchronous).
+
+Both expose the same three calls, so the training loop does not know which one it drives:
+
+    sampler.publish(version, state_dict)   # newest weights; workers pick them up between fragments
+    sampler.get() -> fragment              # blocks until one fragment is ready
+    sampler.close()
+
+The Ray sampler bounds the fragments in flight (backpressure): at most ``max_in_flight`` rollout
+calls are outstanding, so workers idle rather than run ahead of a slow learner, which bounds policy lag.
+Weights go through a small ``WeightsStore`` actor that holds the reference of the newest version: a
+worker asks it at the *start* of every fragment, so a call that waited in an actor's queue still acts
+with the newest weights (passing the weights with the call would freeze the version at submission).
+"""
+from __future__ import annotations
+
+import logging
+import os
+from collections import deque
+from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
+
+import ray
+import torch
+
+from quad_env import EnvConfig
+from swarm_appo.rollout import RolloutWorker, worker_seed
+
+log = logging.getLogger(__name__)
+
+Weights = Tuple[int, Dict[str, torch.Tensor]]
+
+
+class SerialSampler:
+    """Round-robin over in-process workers; every fragment uses the newest weights (lag 0)."""
+
+    def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
+                 rollout: int, seed: int):
+        self.workers = [RolloutWorker(env_cfg, model_factory, envs_per_worker, rollout,
+                                      worker_seed(seed, i), worker_id=i) for i in range(num_workers)]
+        self._next = 0
+        self._weights: Optional[Weights] = None
+        self.restarts = 0
+
+    def publish(self, version: int, state_dict: Dict[str, torch.Tensor]) -> None:
+        self._weights = (version, state_dict)
+
+    def get(self) -> Dict[str, Any]:
+        worker = self.workers[self._next]
+        self._next = (self._next + 1) % len(self.workers)
+        return worker.collect_with_weights(self._weights)
+
+    def close(self) -> None:
+        self.workers.clear()
+
+
+@ray.remote(num_cpus=0)
+class WeightsStore:
+    """Holds ``(version, [object ref])`` of the newest published weights (the list keeps the ref unresolved)."""
+
+    def __init__(self):
+        self._latest = (-1, [None])
+
+    def set(self, version: int, ref_list: list) -> None:
+        self._latest = (version, ref_list)
+
+    def latest(self):
+        return self._latest
+
+
+class RayRolloutWorker(RolloutWorker):
+    """A RolloutWorker that fetches the newest weights from the store before each fragment."""
+
+    def __init__(self, store, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.store = store
+
+    def collect_latest(self) -> Dict[str, Any]:
+        version, (ref,) = ray.get(self.store.latest.remote())
+        if ref is not None and version != self.policy_version:
+            self.set_weights(*ray.get(ref))
+        return self.collect()
+
+
+class RaySampler:
+    """Rollout workers as Ray actors streaming fragments through the object store."""
+
+    def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
+                 rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0):
+        if max_in_flight < num_workers:
+            raise ValueError(f"runner.max_fragments_in_flight ({max_in_flight}) must be >= the number of "
+                             f"rollout workers ({num_workers}), or some workers would never run")
+        self._args = (env_cfg, model_factory, envs_per_worker, rollout)
+        self._seed = seed
+        self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0)(RayRolloutWorker)
+        self._store = WeightsStore.remote()
+        self.workers: List[Any] = []
+        self._incarnation: List[int] = []
+        for i in range(num_workers):
+            self.workers.append(self._spawn(i, 0))
+            self._incarnation.append(0)
+        self.max_in_flight = max_in_flight
+        self._pending: Dict[Any, int] = {}  # object ref -> worker index
+        self._ready: Deque[Dict[str, Any]] = deque()
+        self.restarts = 0
+
+    def _spawn(self, index: int, incarnation: int):
+        env_cfg, model_factory, envs_per_worker, rollout = self._args
+        return self._remote_cls.remote(self._store, env_cfg, model_factory, envs_per_worker, rollout,
+                                       worker_seed(self._seed, index, incarnation), index)
+
+    def publish(self, version: int, state_dict: Dict[str, torch.Tensor]) -> None:
+        ref = ray.put((version, state_dict))  # one object per version, shared by all workers
+        ray.get(self._store.set.remote(version, [ref]))
+
+    def _fill(self) -> None:
+        """Keep every worker busy, round-robin, up to the in-flight bound."""
+        in_flight = [0] * len(self.workers)
+        for w in self._pending.values():
+            in_flight[w] += 1
+        while len(self._pending) < self.max_in_flight:
+            w = min(range(len(self.workers)), key=lambda i: (in_flight[i], i))
+            ref = self.workers[w].collect_latest.remote()
+            self._pending[ref] = w
+            in_flight[w] += 1
+
+    def get(self) -> Dict[str, Any]:
+        while True:
+            self._fill()
+            ready, _ = ray.wait(list(self._pending), num_returns=1)
+            ref = ready[0]
+            w = self._pending.pop(ref)
+            try:
+                return ray.get(ref)
+            except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
+                self._replace(w, exc)
+
+    def _replace(self, w: int, exc: Exception) -> None:
+        """A dead worker: discard its in-flight fragments, start a fresh one with a new seed."""
+        log.warning("rollout worker %d died (%s); restarting it", w, type(exc).__name__)
+        for ref in [r for r, i in self._pending.items() if i == w]:
+            del self._pending[ref]
+        try:
+            ray.kill(self.workers[w])
+        except Exception:  # already gone
+            pass
+        self._incarnation[w] += 1
+        self.workers[w] = self._spawn(w, self._incarnation[w])
+        self.restarts += 1
+
+    def worker_pids(self) -> List[int]:
+        return ray.get([w.pid.remote() for w in self.workers])
+
+    def close(self) -> None:
+        for w in self.workers:
+            try:
+                ray.kill(w)
+            except Exception:
+                pass
+        self.workers.clear()
+        self._pending.clear()
+        try:
+            ray.kill(self._store)
+        except Exception:
+            pass
+
+
+def init_local_ray(num_cpus: Optional[int] = None) -> None:
+    """Start (or reuse) a local Ray bound to loopback."""
+    if ray.is_initialized():
+        return
+    ray.init(num_cpus=num_cpus or os.cpu_count(), _node_ip_address="127.0.0.1", include_dashboard=False,
+             log_to_driver=True, configure_logging=False)

@@ -1,0 +1,239 @@
+"""The training loop: sampler -> learner -> publish weights -> log -> checkpoint, until the step budget.
+
+    cfg = load_config("configs/quickstart.yaml", ["env.num_agents=16"])
+    result = train(cfg)                       # new run in runs/<name>
+    result = train(None, resume_dir=result.run_dir)   # continue it
+
+The loop lives in the driver process together with the learner; rollout workers are Ray actors
+(or in-process objects in serial mode). Counters, weights, optimizer, RNG states and the wandb run id
+are checkpointed atomically, so a run killed at any moment resumes from its last checkpoint.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import random
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+import torch
+
+from quad_env import ObsLayout, VecQuadEnv
+from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
+                                   save_checkpoint)
+from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
+from swarm_appo.learner import Learner
+from swarm_appo.metrics import MetricsLogger, system_metrics
+from swarm_appo.model import model_factory
+from swarm_appo.sampling import RaySampler, SerialSampler, init_local_ray
+
+log = logging.getLogger(__name__)
+CHECKPOINT_FORMAT = 1
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    agent_steps: int
+    policy_version: int
+    checkpoint: Optional[Path]
+    worker_restarts: int
+    interrupted: bool = False
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("runner.device=cuda but no CUDA device is available; use 'auto' or 'cpu'")
+    return torch.device(name)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def num_rollout_workers(cfg: TrainConfig) -> int:
+    if cfg.runner.num_workers > 0:
+        return cfg.runner.num_workers
+    return max(1, (os.cpu_count() or 2) - 1)  # one core stays with the learner
+
+
+def max_fragments_in_flight(cfg: TrainConfig, num_workers: int) -> int:
+    return cfg.runner.max_fragments_in_flight or 2 * num_workers  # 0 = auto: one queued behind each running
+
+
+def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
+    """charts/ and swarm/ records from the swarm episodes that ended since the last log."""
+    if not episodes:
+        return {}
+    out = {"charts/episode_reward": float(np.mean([e["return"] for e in episodes])),
+           "charts/episode_length": float(np.mean([e["length"] for e in episodes])),
+           "charts/episodes": float(len(episodes))}
+    by_scenario: Dict[str, List[Dict[str, Any]]] = defaultdict(list)
+    for e in episodes:
+        by_scenario[e.get("scenario", "unknown")].append(e)
+    for key, src in (("dist", "dist_last_5s"), ("dist_final", "dist_final"), ("collisions", "collisions")):
+        vals = [e[src] for e in episodes if src in e]
+        if vals:
+            out[f"swarm/{key}"] = float(np.mean(vals))
+        for scen, eps in by_scenario.items():
+            vals = [e[src] for e in eps if src in e]
+            if vals:
+                out[f"swarm/{scen}/{key}"] = float(np.mean(vals))
+    return out
+
+
+def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress: bool = True,
+          overrides_on_resume: Optional[Dict[str, Any]] = None) -> RunResult:
+    """Run (or resume) one training run; returns where it ended."""
+    # ---------------------------------------------------------------- run directory and config
+    state = None
+    if resume_dir is not None:
+        run_dir = Path(resume_dir)
+        state, ckpt_path = load_latest_checkpoint(run_dir)
+        if cfg is None:
+            import yaml
+            cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
+        log.info("resuming %s from %s", run_dir, ckpt_path)
+    assert cfg is not None, "train() needs a config or a run directory to resume"
+    import encoders
+    validate(cfg, known_encoders=encoders.ENCODERS)
+    if resume_dir is None:
+        run_dir = Path(cfg.runner.run_dir) / (cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
+        if (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
+            raise FileExistsError(f"{run_dir} already holds checkpoints; resume it with --resume {run_dir} "
+                                  f"or choose another runner.name")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, run_dir / "config.yaml")
+
+    seed_everything(cfg.runner.seed)
+    device = pick_device(cfg.runner.device)
+    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    make_model = model_factory(layout, cfg.model)
+    learner = Learner(make_model(), cfg.algo, device, seed=cfg.runner.seed)
+    agent_steps = 0
+    if state is not None:
+        learner.load_state_dict(state["learner"])
+        agent_steps = int(state["agent_steps"])
+        restore_rng_states(state["rng"])
+
+    # Compile the numba kernels once here, so workers load them from the on-disk cache.
+    VecQuadEnv(cfg.env, num_envs=1, seed=0).step(np.zeros((cfg.env.num_agents, 4), np.float32))
+
+    logger = MetricsLogger(run_dir, config_to_dict(cfg), wandb_mode=cfg.wandb.mode, project=cfg.wandb.project,
+                           run_name=run_dir.name, resume_id=state.get("wandb_id") if state else None,
+                           entity=cfg.wandb.entity, group=cfg.wandb.group, tags=cfg.wandb.tags,
+                           resume_step=agent_steps if state else None)
+    num_workers = num_rollout_workers(cfg)
+    sampler_seed = cfg.runner.seed + 7919 * learner.version  # a resumed run does not replay old episodes
+    if cfg.runner.serial:
+        sampler = SerialSampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
+                                sampler_seed)
+    else:
+        init_local_ray()
+        sampler = RaySampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
+                             sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers))
+    sampler.publish(*learner.cpu_weights())
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=cfg.runner.total_agent_steps, initial=agent_steps, unit="step", unit_scale=True,
+                   dynamic_ncols=True, desc=run_dir.name)
+
+    def checkpoint(metric: Optional[float]) -> Path:
+        ckpt_state = {"format": CHECKPOINT_FORMAT, "learner": learner.state_dict(), "agent_steps": agent_steps,
+                      "config": config_to_dict(cfg), "rng": capture_rng_states(), "wandb_id": logger.run_id}
+        return save_checkpoint(run_dir, ckpt_state, step=agent_steps, metric=metric,
+                                keep_last=cfg.runner.keep_checkpoints)
+
+    # ---------------------------------------------------------------- the loop
+    batch: List[Dict[str, Any]] = []
+    episodes: List[Dict[str, Any]] = []
+    timers = defaultdict(float)  # driver wall time per phase, and worker time per phase
+    t_start = t_log = t_ckpt = time.perf_counter()
+    steps_at_log = agent_steps
+    last_ckpt: Optional[Path] = None
+    last_reward: Optional[float] = None
+    interrupted = False
+    try:
+        while agent_steps < cfg.runner.total_agent_steps:
+            t0 = time.perf_counter()
+            frag = sampler.get()  # [T, B] fragment
+            timers["wait"] += time.perf_counter() - t0
+            timers["env"] += frag["env_time_s"]
+            timers["inference"] += frag["inference_time_s"]
+            agent_steps += frag["num_agent_steps"]
+            episodes.extend(frag["episode_stats"])
+            batch.append(frag)
+            if sum(f["num_agent_steps"] for f in batch) < cfg.algo.batch_size:
+                continue
+
+            t1 = time.perf_counter()
+            stats = learner.train(batch)
+            timers["learner"] += time.perf_counter() - t1
+            learner_samples = sum(f["num_agent_steps"] for f in batch)
+            timers["learner_samples"] += learner_samples
+            batch = []
+            t2 = time.perf_counter()
+            sampler.publish(*learner.cpu_weights())
+            timers["publish"] += time.perf_counter() - t2
+
+            # ------------------------------------------------------------ logging
+            now = time.perf_counter()
+            record = dict(stats)
+            record.update(summarize_episodes(episodes))
+            if "charts/episode_reward" in record:
+                last_reward = record["charts/episode_reward"]
+            episodes = []
+            wall = now - t_log
+            driver = max(timers["wait"] + timers["learner"] + timers["publish"], 1e-9)
+            worker = max(timers["env"] + timers["inference"], 1e-9)
+            record.update({
+                "charts/sps": (agent_steps - steps_at_log) / max(wall, 1e-9),
+                "perf/agent_steps_per_s": (agent_steps - steps_at_log) / max(wall, 1e-9),
+                "perf/learner_samples_per_s": timers["learner_samples"] / max(timers["learner"], 1e-9),
+                "perf/transfer_share": (timers["wait"] + timers["publish"]) / driver,
+                "perf/learner_share": timers["learner"] / driver,
+                "perf/env_share": timers["env"] / worker,
+                "perf/inference_share": timers["inference"] / worker,
+                "perf/worker_restarts": float(sampler.restarts),
+                "charts/elapsed_s": now - t_start,
+            })
+            record.update(system_metrics())
+            logger.log(agent_steps, record)
+            timers.clear()
+            t_log, steps_at_log = now, agent_steps
+            if bar is not None:
+                bar.update(agent_steps - bar.n)
+                bar.set_postfix(sps=f"{record['charts/sps']:.0f}",
+                                reward=f"{last_reward:.2f}" if last_reward is not None else "-",
+                                lag=f"{record['lag/mean']:.1f}", refresh=False)
+            every_updates = cfg.runner.checkpoint_every_updates
+            if now - t_ckpt >= cfg.runner.checkpoint_every_s or (every_updates and learner.version % every_updates == 0):
+                last_ckpt = checkpoint(last_reward)
+                t_ckpt = time.perf_counter()
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted: writing a final checkpoint to %s", run_dir)
+    except Exception as exc:
+        sampler.close()
+        logger.close()
+        if bar is not None:
+            bar.close()
+        raise RuntimeError(f"training stopped by an error in the learner loop ({type(exc).__name__}: {exc}). "
+                           f"The run directory {run_dir} is intact; resume it from its last checkpoint "
+                           f"({last_ckpt}) with --resume {run_dir}") from exc
+    last_ckpt = checkpoint(last_reward)
+    sampler.close()
+    logger.close()
+    if bar is not None:
+        bar.close()
+    return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted)

@@ -1,0 +1,200 @@
+"""End-to-end behaviour of the trainer: learner updates, lag masking, reproducibility, Ray runs,
+resume, rollout-worker faults. Sizes are tiny so the whole file runs in about a minute on 2 cores."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import ray
+import torch
+
+from quad_env import ObsLayout
+from swarm_appo.checkpoint import load_checkpoint
+from swarm_appo.config import load_config
+from swarm_appo.learner import Learner, stack_fragments
+from swarm_appo.model import model_factory
+from swarm_appo.rollout import RolloutWorker
+from swarm_appo.sampling import RaySampler
+from swarm_appo.trainer import max_fragments_in_flight, train
+
+
+def tiny_overrides(run_dir: Path, name: str, **extra) -> list:
+    base = {
+        "env.num_agents": 2, "env.num_neighbors": 1, "env.episode_duration": 0.3,
+        "runner.envs_per_worker": 2, "runner.num_workers": 1, "runner.serial": "true",
+        "runner.total_agent_steps": 320, "runner.run_dir": str(run_dir), "runner.name": name,
+        "runner.checkpoint_every_s": 0, "algo.rollout": 16, "algo.batch_size": 64, "algo.num_epochs": 2,
+        "model.encoder": "deepsets", "wandb.mode": "disabled",
+    }
+    base.update(extra)
+    return [f"{k}={v}" for k, v in base.items()]
+
+
+def tiny_config(run_dir: Path, name: str, **extra):
+    return load_config(None, tiny_overrides(run_dir, name, **extra))
+
+
+def read_metrics(run_dir: Path) -> list:
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+def fixed_fragments(cfg, seed=0, n=2):
+    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    worker = RolloutWorker(cfg.env, model_factory(layout, cfg.model), cfg.runner.envs_per_worker,
+                           cfg.algo.rollout, seed)
+    worker.set_weights(0, worker.model.state_dict())
+    return [worker.collect() for _ in range(n)]
+
+
+def make_learner(cfg, seed=0):
+    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    torch.manual_seed(seed)
+    return Learner(model_factory(layout, cfg.model)(), cfg.algo, torch.device("cpu"), seed=seed)
+
+
+# --------------------------------------------------------------------------- learner
+def test_stack_fragments_offsets_truncation_columns(tmp_path):
+    cfg = tiny_config(tmp_path, "s")
+    frags = fixed_fragments(cfg, n=2)  # steps 0-15 and 16-31; the 30-step episode truncates at step 29
+    B = frags[0]["rewards"].shape[1]
+    assert frags[0]["final_idx"].shape[0] == 0 and frags[1]["final_idx"].shape[0] == B
+    np.testing.assert_array_equal(frags[1]["final_idx"][:, 0], 13)  # step 29 = row 13 of fragment 2
+    batch = stack_fragments(frags[::-1])  # fragment 2 first: its columns stay 0..B-1
+    assert batch["obs"].shape == (16, 2 * B, frags[0]["obs"].shape[-1])
+    t, b = batch["final_idx"].T
+    assert batch["truncated"][t, b].all() and batch["truncated"].sum() == len(t) == B
+    np.testing.assert_array_equal(np.sort(b), np.arange(B))
+    batch = stack_fragments(frags)  # fragment 2 second: its columns shift by B
+    np.testing.assert_array_equal(np.sort(batch["final_idx"][:, 1]), np.arange(B, 2 * B))
+    np.testing.assert_array_equal(batch["final_obs"], frags[1]["final_obs"])
+    # the true final observation is not the reset observation that follows it
+    assert not np.allclose(frags[1]["final_obs"], frags[1]["obs"][14])
+
+
+def test_learner_update_lowers_loss_on_fixed_batch(tmp_path):
+    cfg = tiny_config(tmp_path, "l", **{"algo.lr": 3e-3, "algo.num_epochs": 1})
+    frags = fixed_fragments(cfg)
+    learner = make_learner(cfg)
+    before = learner.loss_on(frags)
+    for _ in range(5):
+        learner.train(frags)
+    after = learner.loss_on(frags)
+    assert after < before, (before, after)
+
+
+def test_policy_lag_beyond_bound_is_masked_out(tmp_path):
+    cfg = tiny_config(tmp_path, "m", **{"algo.max_policy_lag": 3})
+    frags = fixed_fragments(cfg)
+    learner = make_learner(cfg)
+    learner.version = 10  # the fragments were produced by version 0: lag 10 > 3
+    params = [p.detach().clone() for p in learner.model.parameters()]
+    stats = learner.train(frags)
+    assert stats["lag/min"] == 10 and stats["lag/max"] == 10 and stats["lag/mean"] == 10
+    assert stats["lag/masked_fraction"] == 1.0
+    for p, q in zip(params, learner.model.parameters()):
+        torch.testing.assert_close(p, q, rtol=0, atol=0)  # nothing stale reached the weights
+    # within the bound the same data does move the weights
+    learner.version = 3
+    learner.train(frags)
+    assert any(not torch.equal(p, q) for p, q in zip(params, learner.model.parameters()))
+
+
+def test_non_finite_loss_skips_the_update(tmp_path):
+    cfg = tiny_config(tmp_path, "n")
+    frags = fixed_fragments(cfg)
+    frags[0]["rewards"][3, 0] = np.nan
+    learner = make_learner(cfg)
+    params = [p.detach().clone() for p in learner.model.parameters()]
+    with pytest.warns(UserWarning, match="skipped"):
+        learner.train(frags)
+    assert learner.skipped_updates > 0
+    for p, q in zip(params, learner.model.parameters()):
+        assert torch.isfinite(q).all()
+    # minibatches without the NaN column still update; the weights never become NaN
+
+
+# --------------------------------------------------------------------------- serial runs
+def test_serial_run_is_bit_reproducible_by_seed(tmp_path):
+    results = []
+    for name, seed in (("a", 3), ("b", 3), ("c", 4)):
+        res = train(tiny_config(tmp_path, name, **{"runner.seed": seed}), progress=False)
+        state = load_checkpoint(res.checkpoint)
+        records = read_metrics(res.run_dir)
+        results.append((state["learner"]["model"], [r.get("losses/loss") for r in records],
+                        [r.get("charts/episode_reward") for r in records]))
+    (wa, la, ra), (wb, lb, rb), (wc, lc, rc) = results
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    assert la == lb and ra == rb
+    assert any(not torch.equal(wa[k], wc[k]) for k in wa), "a different seed must give a different run"
+
+
+def test_run_dir_contents_and_resume_continues_counters(tmp_path):
+    cfg = tiny_config(tmp_path, "r", **{"wandb.mode": "offline"})
+    first = train(cfg, progress=False)
+    run_dir = first.run_dir
+    assert (run_dir / "config.yaml").exists()
+    assert list((run_dir / "checkpoints").glob("ckpt_*.pt"))
+    assert list((run_dir / "wandb").glob("offline-run-*")), "an offline wandb run must be in the run dir"
+    records = read_metrics(run_dir)
+    assert records[-1]["global_step"] == first.agent_steps
+    wandb_id = (run_dir / "wandb_id.txt").read_text().strip()
+
+    resumed_cfg = tiny_config(tmp_path, "r", **{"wandb.mode": "offline", "runner.total_agent_steps": 640})
+    second = train(resumed_cfg, resume_dir=str(run_dir), progress=False)
+    assert second.agent_steps >= 640 and second.policy_version > first.policy_version
+    new_records = read_metrics(run_dir)[len(records):]
+    assert new_records and new_records[0]["global_step"] > first.agent_steps
+    assert (run_dir / "wandb_id.txt").read_text().strip() == wandb_id
+    assert len(list((run_dir / "wandb").glob("offline-run-*"))) >= 1
+
+
+def test_new_run_refuses_to_overwrite_a_run_with_checkpoints(tmp_path):
+    train(tiny_config(tmp_path, "o"), progress=False)
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(tiny_config(tmp_path, "o"), progress=False)
+
+
+# --------------------------------------------------------------------------- Ray
+@pytest.fixture(scope="module")
+def local_ray():
+    ray.init(num_cpus=2, _node_ip_address="127.0.0.1", include_dashboard=False, configure_logging=False)
+    yield
+    ray.shutdown()
+
+
+def test_ray_run_with_two_actors_writes_run_dir(tmp_path, local_ray):
+    cfg = tiny_config(tmp_path, "ray", **{"runner.serial": "false", "runner.num_workers": 2,
+                                           "runner.total_agent_steps": 640, "wandb.mode": "offline"})
+    res = train(cfg, progress=False)
+    assert res.agent_steps >= 640
+    assert list((res.run_dir / "checkpoints").glob("ckpt_*.pt"))
+    assert list((res.run_dir / "wandb").glob("offline-run-*"))
+    records = read_metrics(res.run_dir)
+    assert all({"lag/min", "lag/mean", "lag/max", "losses/policy_loss"} <= set(r) for r in records)
+    # backpressure bounds the lag: a fragment waits behind at most max_in_flight - 1 others
+    assert max(r["lag/max"] for r in records) <= max_fragments_in_flight(cfg, 2)
+
+
+def test_killed_rollout_actor_is_replaced_and_sampling_goes_on(tmp_path, local_ray):
+    cfg = tiny_config(tmp_path, "k")
+    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    make_model = model_factory(layout, cfg.model)
+    sampler = RaySampler(cfg.env, make_model, num_workers=2, envs_per_worker=2, rollout=16, seed=0,
+                         max_in_flight=4)
+    try:
+        sampler.publish(0, make_model().state_dict())
+        sampler.get()
+        victim = sampler.worker_pids()[0]
+        os.kill(victim, signal.SIGKILL)
+        frags = [sampler.get() for _ in range(6)]
+        assert sampler.restarts == 1
+        assert {f["worker_id"] for f in frags} == {0, 1}, "the replacement worker must produce fragments"
+        assert victim not in sampler.worker_pids()
+    finally:
+        sampler.close()
