@@ -1,0 +1,95 @@
+"""Reward terms on hand-computed cases; collisions are penalised once per contact."""
+import numpy as np
+import pytest
+
+from quad_env import REWARD_TERMS, VecQuadEnv
+
+DT = 0.01  # control dt
+
+
+def test_reward_terms_hand_computed(quiet_cfg):
+    cfg = quiet_cfg(num_agents=3, num_neighbors=2, drag_coeff=0.0)
+    env = VecQuadEnv(cfg, num_envs=1, seed=0)
+    hover = 1 / 1.9
+    # drones 0, 1: resting on the floor 0.1 m apart, motors off; drone 2: hovering at z = 5, yawing at 3 rad/s
+    env.set_state(pos=[[0, 0, 0.046], [0.1, 0, 0.046], [2, 2, 5]], vel=np.zeros((3, 3)),
+                  rot=np.tile(np.eye(3), (3, 1, 1)), omega=[[0, 0, 0], [0, 0, 0], [0, 0, 3.0]],
+                  motor=[[0, 0, 0, 0], [0, 0, 0, 0], [np.sqrt(hover)] * 4],
+                  goal=[[0, 0, 1.046], [0.1, 2, 0.046], [2, 2, 4.5]])
+    a_hover = 2 * hover - 1
+    actions = np.array([[-1.0] * 4, [-1.0] * 4, [a_hover] * 4])
+    _, rew, _, _ = env.step(actions)
+    t = env.reward_terms
+    prox = 1 - 0.1 / 0.184
+    expected = {
+        "pos": [-0.5 * DT * 1.0, -0.5 * DT * 2.0, -0.5 * DT * 0.5],
+        "collision": [0.0, 0.0, 0.0],
+        "proximity": [-5 * DT * prox, -5 * DT * prox, 0.0],
+        "omega": [0.0, 0.0, -0.01 * DT * 3.0],
+        "action": [-0.05 * DT * 2.0, -0.05 * DT * 2.0, -0.05 * DT * 2 * abs(a_hover)],
+    }
+    assert set(t) == set(REWARD_TERMS)
+    for name, values in expected.items():
+        np.testing.assert_allclose(t[name], values, rtol=1e-6, atol=1e-9, err_msg=name)
+    np.testing.assert_allclose(rew, sum(np.asarray(v) for v in expected.values()), rtol=1e-6)
+    np.testing.assert_allclose(rew, sum(t[k] for k in REWARD_TERMS), rtol=1e-6)
+    assert rew.dtype == np.float32 and all(v.dtype == np.float32 for v in t.values())
+
+
+def test_actions_are_clipped_before_the_action_penalty(quiet_cfg):
+    env = VecQuadEnv(quiet_cfg(num_agents=1, num_neighbors=0), num_envs=1, seed=0)
+    env.step(np.full((1, 4), 7.0))
+    assert env.reward_terms["action"][0] == pytest.approx(-0.05 * DT * 2.0, rel=1e-6)
+
+
+def test_coefficients_come_from_the_config(quiet_cfg):
+    cfg = quiet_cfg(num_agents=1, num_neighbors=0, reward=dict(pos=2.0, action=0.0))
+    env = VecQuadEnv(cfg, num_envs=1, seed=0)
+    env.set_state(pos=[[0, 0, 0.046]], vel=np.zeros((1, 3)), rot=[np.eye(3)], motor=np.zeros((1, 4)),
+                  goal=[[0, 3, 4.046]])
+    env.step(-np.ones((1, 4)))
+    assert env.reward_terms["pos"][0] == pytest.approx(-2.0 * DT * 5.0, rel=1e-6)
+    assert env.reward_terms["action"][0] == 0.0
+
+
+def approach(quiet_cfg, restitution, steps=30):
+    """Two hovering drones 0.3 m apart flying at each other at 0.5 m/s each; returns the collision terms."""
+    cfg = quiet_cfg(num_agents=2, num_neighbors=1, drag_coeff=0.0,
+                    physics=dict(collision_restitution=restitution))
+    env = VecQuadEnv(cfg, num_envs=1, seed=0)
+    hover = 1 / 1.9
+    env.set_state(pos=[[0, 0, 5], [0.3, 0, 5]], vel=[[0.5, 0, 0], [-0.5, 0, 0]], rot=np.tile(np.eye(3), (2, 1, 1)),
+                  omega=np.zeros((2, 3)), motor=np.full((2, 4), np.sqrt(hover)), goal=[[0, 0, 5], [0.3, 0, 5]])
+    hits, dists = [], []
+    for _ in range(steps):
+        env.step(np.full((2, 4), 2 * hover - 1))
+        hits.append(env.reward_terms["collision"].copy())
+        s = env.get_state()
+        dists.append(np.linalg.norm(s.pos[1] - s.pos[0]))
+    return np.array(hits), np.array(dists)
+
+
+def test_collision_penalised_once_per_contact_then_bounce(quiet_cfg):
+    hits, dists = approach(quiet_cfg, restitution=0.75)
+    assert (hits == -5.0).sum(0).tolist() == [1, 1]  # each drone: -5 exactly once
+    assert set(np.unique(hits)) == {0.0, -5.0}
+    first = np.flatnonzero(hits[:, 0])[0]
+    assert dists[first] <= 0.092 < dists[first - 1]  # at the first step within the contact distance
+    assert dists[-1] > 0.092  # they bounced apart
+
+
+def test_lingering_contact_is_not_penalised_again(quiet_cfg):
+    hits, dists = approach(quiet_cfg, restitution=0.0)  # fully inelastic: they stay touching
+    assert (dists[-10:] <= 0.092).all()
+    assert (hits == -5.0).sum(0).tolist() == [1, 1]
+
+
+def test_proximity_term_counts_every_close_drone(quiet_cfg):
+    env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0), num_envs=1, seed=0)
+    env.set_state(pos=[[0, 0, 0.046], [0.1, 0, 0.046], [0, 0.15, 0.046]], vel=np.zeros((3, 3)),
+                  rot=np.tile(np.eye(3), (3, 1, 1)), motor=np.zeros((3, 4)), goal=np.zeros((3, 3)))
+    env.step(-np.ones((3, 4)))
+    d12 = np.hypot(0.1, 0.15)
+    pen = lambda d: max(0.0, 1 - d / 0.184)  # noqa: E731
+    expected = -5 * DT * np.array([pen(0.1) + pen(0.15), pen(0.1) + pen(d12), pen(0.15) + pen(d12)])
+    np.testing.assert_allclose(env.reward_terms["proximity"], expected, rtol=1e-6)
