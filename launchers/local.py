@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 from typing import List, Optional
 
@@ -25,6 +26,10 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. env.num_agents=16")
     return p.parse_args(argv)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -44,12 +49,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (ConfigError, FileNotFoundError) as exc:
         print(f"config error: {exc}", file=sys.stderr)
         return 2
+    # SIGTERM (a scheduler, `kill`) stops like Ctrl-C: a final checkpoint, then a clean exit.
+    signal.signal(signal.SIGTERM, _interrupt)
     result = train(cfg, resume_dir=args.resume, progress=not args.no_progress)
     print(f"run directory: {result.run_dir}")
     print(f"agent steps: {result.agent_steps}  policy version: {result.policy_version}  "
           f"worker restarts: {result.worker_restarts}")
     print(f"checkpoint: {result.checkpoint}")
     print(f"metrics: {result.run_dir / 'metrics.jsonl'}")
+    if result.final_eval:
+        ev = result.final_eval
+        print(f"final evaluation (mean actions): "
+              f"distance to goal {ev.get('eval/dist', float('nan')):.2f} m (last 5 s) vs "
+              f"{ev.get('eval_random/dist', float('nan')):.2f} m for random actions "
+              f"(ratio {ev.get('eval/dist_ratio_to_random', float('nan')):.2f}); "
+              f"collisions/episode {ev.get('eval/collisions', float('nan')):.2f}")
     return 130 if result.interrupted else 0
 
 

@@ -31,9 +31,17 @@ WANDB_ID_FILE = "wandb_id.txt"
 STEP_KEY = "global_step"
 WANDB_MODES = ("offline", "online", "disabled")
 
-METRIC_GROUPS = ("charts", "swarm", "losses", "lag", "perf", "system")
+METRIC_GROUPS = ("charts", "swarm", "losses", "lag", "perf", "system", "eval", "eval_random")
 
 METRICS: Dict[str, str] = {
+    # eval/, eval_random/: end-of-run evaluation (mean actions vs uniformly random actions, same episodes)
+    "eval/reward": "mean per-agent episode reward of the trained policy (mean actions)",
+    "eval/dist": "mean distance to goal over the last 5 s of the episode, trained policy (m)",
+    "eval/dist_final": "mean distance to goal at the end of the episode, trained policy (m)",
+    "eval/collisions": "drone-drone collisions per episode, trained policy",
+    "eval/dist_ratio_to_random": "eval/dist divided by eval_random/dist (learning shows as < 1; quickstart target <= 0.5)",
+    "eval_random/reward": "the same for uniformly random actions", "eval_random/dist": "the same for random actions",
+    "eval_random/dist_final": "the same for random actions", "eval_random/collisions": "the same for random actions",
     # charts/: training progress
     "charts/episode_reward": "mean return per drone of the episodes that ended since the last record",
     "charts/episode_length": "mean length (control steps) of those episodes",

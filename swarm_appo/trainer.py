@@ -26,6 +26,7 @@ from quad_env import ObsLayout, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
 from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
+from swarm_appo.evaluate import compare_with_random
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
 from swarm_appo.model import model_factory
@@ -43,6 +44,7 @@ class RunResult:
     checkpoint: Optional[Path]
     worker_restarts: int
     interrupted: bool = False
+    final_eval: Optional[Dict[str, float]] = None
 
 
 def pick_device(name: str) -> torch.device:
@@ -114,6 +116,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     save_config(cfg, run_dir / "config.yaml")
 
     seed_everything(cfg.runner.seed)
+    torch.set_num_threads(cfg.runner.learner_threads or os.cpu_count() or 1)
     device = pick_device(cfg.runner.device)
     layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
     make_model = model_factory(layout, cfg.model)
@@ -233,7 +236,12 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                            f"({last_ckpt}) with --resume {run_dir}") from exc
     last_ckpt = checkpoint(last_reward)
     sampler.close()
-    logger.close()
     if bar is not None:
         bar.close()
-    return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted)
+    final_eval: Dict[str, float] = {}
+    if cfg.runner.final_eval_episodes > 0 and not interrupted:
+        final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
+                                         seed=cfg.runner.seed + 1_000_003)
+        logger.log(agent_steps, final_eval)
+    logger.close()
+    return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted, final_eval)

@@ -29,7 +29,7 @@ def tiny_overrides(run_dir: Path, name: str, **extra) -> list:
         "runner.envs_per_worker": 2, "runner.num_workers": 1, "runner.serial": "true",
         "runner.total_agent_steps": 320, "runner.run_dir": str(run_dir), "runner.name": name,
         "runner.checkpoint_every_s": 0, "algo.rollout": 16, "algo.batch_size": 64, "algo.num_epochs": 2,
-        "model.encoder": "deepsets", "wandb.mode": "disabled",
+        "model.encoder": "deepsets", "wandb.mode": "disabled", "runner.final_eval_episodes": 2,
     }
     base.update(extra)
     return [f"{k}={v}" for k, v in base.items()]
@@ -176,7 +176,10 @@ def test_ray_run_with_two_actors_writes_run_dir(tmp_path, local_ray):
     assert list((res.run_dir / "checkpoints").glob("ckpt_*.pt"))
     assert list((res.run_dir / "wandb").glob("offline-run-*"))
     records = read_metrics(res.run_dir)
-    assert all({"lag/min", "lag/mean", "lag/max", "losses/policy_loss"} <= set(r) for r in records)
+    *records, final = records
+    assert all({"lag/min", "lag/mean", "lag/max", "losses/policy_loss", "perf/worker_restarts"} <= set(r)
+               for r in records)
+    assert {"eval/dist", "eval_random/dist", "eval/dist_ratio_to_random"} <= set(final)
     # backpressure bounds the lag: a fragment waits behind at most max_in_flight - 1 others
     assert max(r["lag/max"] for r in records) <= max_fragments_in_flight(cfg, 2)
 

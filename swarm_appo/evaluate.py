@@ -1,0 +1,60 @@
+"""Policy evaluation: run whole episodes with a policy (or random actions) and average the swarm metrics.
+
+Used at the end of every training run to show whether it learned: the trained policy's mean distance
+to goal against a uniformly random policy's, on the same seeds.
+"""
+from __future__ import annotations
+
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+import torch
+
+from quad_env import EnvConfig, VecQuadEnv
+
+Policy = Callable[[np.ndarray], np.ndarray]  # obs [M, D] -> actions [M, 4]
+
+
+def model_policy(model: torch.nn.Module, deterministic: bool = True) -> Policy:
+    """The actor's mean action (or a sample), on CPU."""
+    model = model.to("cpu").eval()
+
+    @torch.no_grad()
+    def act(obs: np.ndarray) -> np.ndarray:
+        actions, _, _ = model.act(torch.from_numpy(obs), deterministic=deterministic)
+        return actions.numpy()
+
+    return act
+
+
+def random_policy(seed: int) -> Policy:
+    rng = np.random.default_rng(seed)
+    return lambda obs: rng.uniform(-1.0, 1.0, size=(obs.shape[0], 4)).astype(np.float32)
+
+
+def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: int) -> List[Dict]:
+    """``num_episodes`` swarm episodes, all in parallel (one swarm each), seeded: the same seed gives the
+    same initial states whatever the policy, so two policies are compared on the same episodes."""
+    env = VecQuadEnv(env_cfg, num_envs=num_episodes, seed=seed, auto_reset=False)
+    obs = env.reset()
+    for _ in range(env_cfg.episode_steps):
+        obs, _, term, trunc = env.step(policy(obs))
+        if (term | trunc).all():
+            break
+    return env.pop_episode_stats()
+
+
+def summarize(episodes: List[Dict], prefix: str) -> Dict[str, float]:
+    keys = {"return": "reward", "dist_last_5s": "dist", "dist_final": "dist_final", "collisions": "collisions"}
+    return {f"{prefix}/{name}": float(np.mean([e[k] for e in episodes])) for k, name in keys.items()
+            if episodes and k in episodes[0]}
+
+
+def compare_with_random(env_cfg: EnvConfig, model: torch.nn.Module, num_episodes: int = 8,
+                        seed: int = 12345) -> Dict[str, float]:
+    """``eval/*`` (trained, mean actions) and ``eval_random/*`` metrics on the same episodes."""
+    out = summarize(run_episodes(env_cfg, model_policy(model), num_episodes, seed), "eval")
+    out.update(summarize(run_episodes(env_cfg, random_policy(seed), num_episodes, seed), "eval_random"))
+    if out.get("eval_random/dist"):
+        out["eval/dist_ratio_to_random"] = out["eval/dist"] / out["eval_random/dist"]
+    return out
