@@ -1,4 +1,8 @@
-"""quad_env: a numba-JIT multi-quadrotor swarm environment (Crazyflie 2.0 dynamics)."""
+"""quad_env: a numba-JIT multi-quadrotor swarm environment (Crazyflie 2.0 dynamics).
+
+``VecQuadEnv`` steps E swarms x N drones in one kernel (rollout workers); ``QuadSwarmEnv`` (gymnasium
+style) and ``QuadSwarmParallelEnv`` (PettingZoo) wrap one swarm and are imported on first use.
+"""
 from quad_env.config import EnvConfig, PhysicsConfig, RewardConfig
 from quad_env.obs_layout import FIELD_KINDS, Field, ObsLayout
 from quad_env.params import REWARD_TERMS
@@ -6,4 +10,13 @@ from quad_env.scenarios import SCENARIOS, make_scenario, register_scenario
 from quad_env.vec_env import DroneState, VecQuadEnv
 
 __all__ = ["EnvConfig", "RewardConfig", "PhysicsConfig", "ObsLayout", "Field", "FIELD_KINDS", "REWARD_TERMS",
-           "SCENARIOS", "make_scenario", "register_scenario", "VecQuadEnv", "DroneState"]
+           "SCENARIOS", "make_scenario", "register_scenario", "VecQuadEnv", "DroneState", "QuadSwarmEnv",
+           "QuadSwarmParallelEnv"]
+
+
+def __getattr__(name):
+    # The adapters import gymnasium and pettingzoo: only when asked for.
+    if name in ("QuadSwarmEnv", "QuadSwarmParallelEnv"):
+        from quad_env import adapters
+        return getattr(adapters, name)
+    raise AttributeError(f"module 'quad_env' has no attribute {name!r}")

@@ -36,7 +36,7 @@ from quad_env.params import (
     I_FULL_NB, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS, I_TAIL_STEPS,
     I_THRUST_NOISE,
 )
-from quad_env.rng import normal_pair, uniform
+from quad_env.rng import normal_from, normal_pair, uniform
 
 # Episode accumulator columns (float64 [E, NUM_ACC]).
 ACC_RETURN = 0  # sum over steps and agents of the reward
@@ -91,6 +91,7 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
     r10, r11, r12 = rot[i, 1, 0] * 1.0, rot[i, 1, 1] * 1.0, rot[i, 1, 2] * 1.0
     r20, r21, r22 = rot[i, 2, 0] * 1.0, rot[i, 2, 1] * 1.0, rot[i, 2, 2] * 1.0
     touched = 0
+    stream = rng[e]  # the swarm's random stream, kept in a register while this drone steps
 
     for _ in range(ip[I_SUBSTEPS]):
         # ---- motors: first-order lag on rotor speed, multiplicative OU noise on the command
@@ -100,8 +101,10 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
         w3 += gain * (s3 - w3)
         f0, f1, f2, f3 = w0 * w0, w1 * w1, w2 * w2, w3 * w3
         if noise:
-            g0, g1 = normal_pair(rng, e)
-            g2, g3 = normal_pair(rng, e)
+            g0, stream = normal_from(stream)
+            g1, stream = normal_from(stream)
+            g2, stream = normal_from(stream)
+            g3, stream = normal_from(stream)
             n0 += -theta * n0 + sigma * g0
             n1 += -theta * n1 + sigma * g1
             n2 += -theta * n2 + sigma * g2
@@ -209,6 +212,7 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
             if vy < 0.0:
                 vy = -wall_rest * vy
 
+    rng[e] = stream
     motor[i, 0], motor[i, 1], motor[i, 2], motor[i, 3] = w0, w1, w2, w3
     ou[i, 0], ou[i, 1], ou[i, 2], ou[i, 3] = n0, n1, n2, n3
     pos[i, 0], pos[i, 1], pos[i, 2] = px, py, pz
@@ -250,13 +254,35 @@ def _is_finite_drone(i, pos, vel, rot, omega, motor):
 
 # ====================================================================== pair effects
 @njit(cache=True)
-def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, d2mat):
+def gather_positions(e, pos, n_agents, px, py, pz):
+    """Copy swarm ``e``'s positions into the contiguous scratch rows px, py, pz [N] (float64)."""
+    base = e * n_agents
+    for a in range(n_agents):
+        px[a] = pos[base + a, 0]
+        py[a] = pos[base + a, 1]
+        pz[a] = pos[base + a, 2]
+
+
+@njit(cache=True, inline="always")
+def _squared_distances(a, first, n_agents, px, py, pz, row):
+    """row[b] = |x_b - x_a|^2 for b in [first, N): a branch-free loop the compiler vectorises."""
+    xa, ya, za = px[a], py[a], pz[a]
+    for b in range(first, n_agents):
+        dx = px[b] - xa
+        dy = py[b] - ya
+        dz = pz[b] - za
+        row[b] = dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True)
+def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, px, py, pz, row):
     """Collisions, proximity and downwash over every pair a < b of swarm ``e``.
 
-    Writes ``new_coll [N]`` (new contacts of each drone), ``prox [N]`` (sum_j [1 - d/d_p]_+) and the
-    squared centre distances ``d2mat [N, N]`` (read again by the neighbour search), and
+    Writes ``new_coll [N]`` (new contacts of each drone) and ``prox [N]`` (sum_j [1 - d/d_p]_+), and
     updates velocities (collision response, downwash) and body rates (collision kick). Returns the
-    number of new contacts (pairs).
+    number of new contacts (pairs). ``px, py, pz`` hold the swarm's positions (``gather_positions``);
+    ``row`` is scratch. Squared distances of a row of pairs are computed in one vectorised loop; only
+    pairs within reach of an effect (or still marked touching) take the slow path.
 
     Collision response of a touching pair that approaches along the unit normal n: the normal velocity
     components are exchanged (equal masses) and scaled by the restitution; each drone gets a random
@@ -278,21 +304,24 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
     dw_reach2 = dw_len * dw_len + dw_rad * dw_rad
     dw_rad2 = dw_rad * dw_rad
     dw_gain = fp[F_DW_ACC] * fp[F_CTRL_DT]
+    reach2 = max(dp2, cd2)
+    if use_dw:
+        reach2 = max(reach2, dw_reach2)
     count = 0
     for a in range(n_agents):
         new_coll[a] = 0.0
         prox[a] = 0.0
     for a in range(n_agents):
         i = base + a
-        pax, pay, paz = pos[i, 0], pos[i, 1], pos[i, 2]
+        _squared_distances(a, a + 1, n_agents, px, py, pz, row)
         for b in range(a + 1, n_agents):
+            d2 = row[b]
+            if d2 >= reach2 and contact[e, a, b] == 0:
+                continue  # the common case: far apart, nothing to do
             j = base + b
-            dx = pos[j, 0] - pax
-            dy = pos[j, 1] - pay
-            dz = pos[j, 2] - paz
-            d2 = dx * dx + dy * dy + dz * dz
-            d2mat[a, b] = d2
-            d2mat[b, a] = d2
+            dx = px[b] - px[a]
+            dy = py[b] - py[a]
+            dz = pz[b] - pz[a]
             if d2 < dp2:
                 pen = 1.0 - np.sqrt(d2) / dp
                 prox[a] += pen
@@ -329,7 +358,7 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
                         omega[j, 0] += kick * g3
                         omega[j, 1] += kick * g4
                         omega[j, 2] += kick * g5
-            elif contact[e, a, b] != 0:
+            else:
                 contact[e, a, b] = 0
             if use_dw and d2 < dw_reach2:
                 # b below a? s = depth of b along a's -z axis.
@@ -351,13 +380,14 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
 
 # ====================================================================== observation and reward
 @njit(cache=True)
-def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, d2mat, rng, fp, ip,
+def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py, pz, d2row, rng, fp, ip,
                   obs, rew, terms, nb_idx, nb_d2, with_reward):
     """Observation rows (and, if ``with_reward``, reward terms) of every drone of swarm ``e``.
 
-    Neighbours: the K nearest other drones by centre distance (squared distances from ``d2mat``), ties
-    broken by the lower index, found by one scan that inserts into a K-slot sorted list (O(N K) worst
-    case, O(N) typical), never by sorting all N.
+    Neighbours: the K nearest other drones by centre distance, ties broken by the lower index: the
+    squared distances to all N drones are computed in one vectorised loop (positions from
+    ``gather_positions``), then one scan inserts into a K-slot sorted list (O(N K) worst case, O(N)
+    typical), never sorting all N.
     Slots beyond the real neighbours or the sensing radius are zero with mask 0.
     Returns the swarm's mean distance to goal.
     """
@@ -377,8 +407,8 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, d2mat, 
     for a in range(n_agents):
         i = base + a
         row = obs[i]
-        px, py, pz = pos[i, 0] * 1.0, pos[i, 1] * 1.0, pos[i, 2] * 1.0
-        gx, gy, gz = px - goal[i, 0], py - goal[i, 1], pz - goal[i, 2]
+        xi, yi, zi = pos[i, 0] * 1.0, pos[i, 1] * 1.0, pos[i, 2] * 1.0
+        gx, gy, gz = xi - goal[i, 0], yi - goal[i, 1], zi - goal[i, 2]
         dist = np.sqrt(gx * gx + gy * gy + gz * gz)
         dist_sum += dist
 
@@ -387,11 +417,17 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, d2mat, 
         ovx, ovy, ovz = vel[i, 0] * 1.0, vel[i, 1] * 1.0, vel[i, 2] * 1.0
         owx, owy, owz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
         if sensor_noise:
-            g0, g1 = normal_pair(rng, e)
-            g2, g3 = normal_pair(rng, e)
-            g4, g5 = normal_pair(rng, e)
-            g6, g7 = normal_pair(rng, e)
-            g8, _ = normal_pair(rng, e)
+            stream = rng[e]
+            g0, stream = normal_from(stream)
+            g1, stream = normal_from(stream)
+            g2, stream = normal_from(stream)
+            g3, stream = normal_from(stream)
+            g4, stream = normal_from(stream)
+            g5, stream = normal_from(stream)
+            g6, stream = normal_from(stream)
+            g7, stream = normal_from(stream)
+            g8, stream = normal_from(stream)
+            rng[e] = stream
             ox += sp * g0
             oy += sp * g1
             oz += sp * g2
@@ -411,31 +447,30 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, d2mat, 
         # ---- K nearest neighbours: keep a sorted list of (d2, index); later equal d2 lose ties
         found = 0
         if k_slots > 0:
-            d2row = d2mat[a]
-            limit = sense2  # accept d2 <= limit until the list is full, then only d2 < the K-th
+            _squared_distances(a, 0, n_agents, px, py, pz, d2row)
+            d2row[a] = np.nan  # never selects itself (NaN fails every comparison)
+            kth = np.inf  # d2 of the K-th slot once the list is full
             for b in range(n_agents):
                 d2 = d2row[b]
-                if d2 > limit or b == a:
-                    continue
-                if found == k_slots and d2 >= nb_d2[k_slots - 1]:
-                    continue
-                j = base + b
-                slot = found if found < k_slots else k_slots - 1
-                while slot > 0 and nb_d2[slot - 1] > d2:
-                    nb_d2[slot] = nb_d2[slot - 1]
-                    nb_idx[slot] = nb_idx[slot - 1]
-                    slot -= 1
-                nb_d2[slot] = d2
-                nb_idx[slot] = j
-                if found < k_slots:
-                    found += 1
+                if d2 <= sense2 and d2 < kth:  # in range, and beats the K-th (strictly: earlier wins ties)
+                    slot = found if found < k_slots else k_slots - 1
+                    while slot > 0 and nb_d2[slot - 1] > d2:
+                        nb_d2[slot] = nb_d2[slot - 1]
+                        nb_idx[slot] = nb_idx[slot - 1]
+                        slot -= 1
+                    nb_d2[slot] = d2
+                    nb_idx[slot] = base + b
+                    if found < k_slots:
+                        found += 1
+                    if found == k_slots:
+                        kth = nb_d2[k_slots - 1]
         for k in range(k_slots):
             off = 18 + k * nb_dim
             if k < found:
                 j = nb_idx[k]
-                row[off + 0] = pos[j, 0] - px
-                row[off + 1] = pos[j, 1] - py
-                row[off + 2] = pos[j, 2] - pz
+                row[off + 0] = pos[j, 0] - xi
+                row[off + 1] = pos[j, 1] - yi
+                row[off + 2] = pos[j, 2] - zi
                 row[off + 3] = vel[j, 0] - vel[i, 0]
                 row[off + 4] = vel[j, 1] - vel[i, 1]
                 row[off + 5] = vel[j, 2] - vel[i, 2]
@@ -495,7 +530,8 @@ def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_con
     nb_d2 = np.zeros(max(k_slots, 1), np.float64)
     new_coll = np.zeros(n_agents, np.float64)
     prox = np.zeros(n_agents, np.float64)
-    d2mat = np.zeros((n_agents, n_agents), np.float64)
+    px, py, pz = np.zeros(n_agents), np.zeros(n_agents), np.zeros(n_agents)
+    row = np.zeros(n_agents)
     n_done = 0
     for e in range(num_envs):
         base = e * n_agents
@@ -522,10 +558,11 @@ def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_con
                     terms[t, base + a] = 0.0
             n_done += 1
             continue
+        gather_positions(e, pos, n_agents, px, py, pz)
         acc[e, ACC_COLLISIONS] += pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox,
-                                               d2mat)
-        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, d2mat, rng, fp, ip,
-                                  obs, rew, terms, nb_idx, nb_d2, True)
+                                               px, py, pz, row)
+        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py, pz, row, rng,
+                                  fp, ip, obs, rew, terms, nb_idx, nb_d2, True)
         # ---- episode statistics
         for a in range(n_agents):
             i = base + a
@@ -552,19 +589,13 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs):
     dummy_vec = np.zeros(n_agents, np.float64)
     dummy_rew = np.zeros(1, np.float32)
     dummy_terms = np.zeros((5, 1), np.float32)
-    d2mat = np.zeros((n_agents, n_agents), np.float64)
+    px, py, pz = np.zeros(n_agents), np.zeros(n_agents), np.zeros(n_agents)
+    row = np.zeros(n_agents)
     for e in range(selected.shape[0]):
         if selected[e]:
-            base = e * n_agents
-            for a in range(n_agents):
-                for b in range(n_agents):
-                    d2 = 0.0
-                    for k in range(3):
-                        d = pos[base + b, k] - pos[base + a, k]
-                        d2 += d * d
-                    d2mat[a, b] = d2
-            observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, d2mat, rng, fp, ip,
-                          obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False)
+            gather_positions(e, pos, n_agents, px, py, pz)
+            observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, px, py, pz, row, rng,
+                          fp, ip, obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False)
 
 
 @njit(cache=True)

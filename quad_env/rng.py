@@ -33,13 +33,19 @@ def seed_streams(seed: int, num_streams: int) -> np.ndarray:
 
 
 @njit(cache=True, inline="always")
+def mix64(z):
+    """SplitMix64 output function of an advanced state."""
+    z = (z ^ (z >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    return z ^ (z >> _S31)
+
+
+@njit(cache=True, inline="always")
 def next_u64(rng, e):
     """Advance stream ``e`` and return its next 64-bit output."""
     z = rng[e] + _GAMMA
     rng[e] = z
-    z = (z ^ (z >> _S30)) * _MIX1
-    z = (z ^ (z >> _S27)) * _MIX2
-    return z ^ (z >> _S31)
+    return mix64(z)
 
 
 @njit(cache=True, inline="always")
@@ -72,25 +78,53 @@ _LOW7 = np.uint64(0x7F)
 
 
 @njit(cache=True)
-def normal(rng, e):
-    """One standard normal from stream ``e`` (ziggurat)."""
+def _normal_slow(state, u, layer):
+    """The rare ziggurat branches (about 1.2% of draws): a wedge test or the tail. Returns (x, state)."""
     while True:
-        z = next_u64(rng, e)
-        layer = int(z & _LOW7)  # bits 0-6 pick the layer ...
-        u = 2.0 * (float(z >> _S11) * _TO_UNIT) - 1.0  # ... bits 11-63 the signed position in it
-        if abs(u) < _ZIG_RATIO[layer]:  # inside the layer's rectangle: accept at once
-            return u * _ZIG_X[layer]
         if layer == 0:  # base strip: draw from the tail x > R
             while True:
-                x = np.log(1.0 - uniform(rng, e)) / _ZIG_R
-                y = np.log(1.0 - uniform(rng, e))
+                state += _GAMMA
+                x = np.log(1.0 - float(mix64(state) >> _S11) * _TO_UNIT) / _ZIG_R
+                state += _GAMMA
+                y = np.log(1.0 - float(mix64(state) >> _S11) * _TO_UNIT)
                 if -2.0 * y >= x * x:
-                    return x - _ZIG_R if u < 0.0 else _ZIG_R - x
+                    return (x - _ZIG_R if u < 0.0 else _ZIG_R - x), state
         x = u * _ZIG_X[layer]  # a wedge: accept under the density
         f0 = np.exp(-0.5 * (_ZIG_X[layer] * _ZIG_X[layer] - x * x))
         f1 = np.exp(-0.5 * (_ZIG_X[layer + 1] * _ZIG_X[layer + 1] - x * x))
-        if f1 + uniform(rng, e) * (f0 - f1) < 1.0:
-            return x
+        state += _GAMMA
+        if f1 + float(mix64(state) >> _S11) * _TO_UNIT * (f0 - f1) < 1.0:
+            return x, state
+        # rejected: a fresh draw
+        state += _GAMMA
+        z = mix64(state)
+        layer = int(z & _LOW7)
+        u = 2.0 * (float(z >> _S11) * _TO_UNIT) - 1.0
+        if abs(u) < _ZIG_RATIO[layer]:
+            return u * _ZIG_X[layer], state
+
+
+@njit(cache=True, inline="always")
+def normal_from(state):
+    """One standard normal from a stream state held in a local variable: returns (x, new state).
+
+    Kernels load ``rng[e]`` once, draw several numbers and store the state back: the draws then do not
+    wait on each other through memory.
+    """
+    state += _GAMMA
+    z = mix64(state)
+    layer = int(z & _LOW7)  # bits 0-6 pick the layer ...
+    u = 2.0 * (float(z >> _S11) * _TO_UNIT) - 1.0  # ... bits 11-63 the signed position in it
+    if abs(u) < _ZIG_RATIO[layer]:  # inside the layer's rectangle: accept at once
+        return u * _ZIG_X[layer], state
+    return _normal_slow(state, u, layer)
+
+
+@njit(cache=True)
+def normal(rng, e):
+    """One standard normal from stream ``e`` (ziggurat)."""
+    x, rng[e] = normal_from(rng[e])
+    return x
 
 
 @njit(cache=True)

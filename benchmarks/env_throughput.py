@@ -1,0 +1,175 @@
+"""Simulator throughput on one CPU core: agent-steps/s of VecQuadEnv, and numba compile times.
+
+    python -m benchmarks.env_throughput [--agents 1,8,32,128] [--drones 8192] [--dtypes float64,float32]
+                                        [--repeats 10] [--steps 40] [--core N] [--no-compile] [--no-append]
+
+For each swarm size N (K = 6 "full" neighbours, all noise on, scenario static_same_goal) the process is
+pinned to one core (``os.sched_setaffinity``, what ``taskset -c`` does) and E = drones // N swarms are
+stepped with uniform random actions in [-1, 1], after a JIT warm-up. A figure is the best of
+``--repeats`` windows of ``--steps`` control steps (the machine may be shared; the median is shown too).
+Compile time: a fresh Python process imports quad_env, builds an env and takes one step, first with an
+empty numba cache (``NUMBA_CACHE_DIR`` = a new temp dir: cold) and then again with the cache it filled
+(warm). Figures are appended to benchmarks/RESULTS.md with the command, commit and machine.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
+ROOT = Path(__file__).resolve().parent.parent
+TARGETS = {8: 1_000_000, 128: 500_000}  # agent-steps/s on one core (the issue's targets)
+
+COMPILE_SNIPPET = """
+import time
+t0 = time.perf_counter()
+import numpy as np
+from quad_env import EnvConfig, VecQuadEnv
+t1 = time.perf_counter()
+env = VecQuadEnv(EnvConfig(num_agents=8, sim_dtype="{dtype}"), num_envs=2, seed=0)
+env.step(np.zeros((16, 4), np.float32))
+t2 = time.perf_counter()
+print(t1 - t0, t2 - t1)
+"""
+
+
+def measure(num_agents: int, num_drones: int, dtype: str, steps: int, repeats: int) -> dict:
+    from quad_env import EnvConfig, VecQuadEnv
+
+    num_envs = max(1, num_drones // num_agents)
+    cfg = EnvConfig(num_agents=num_agents, num_neighbors=6, sim_dtype=dtype)
+    env = VecQuadEnv(cfg, num_envs=num_envs, seed=0)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (16, env.num_drones, 4)).astype(np.float32)
+    for t in range(5):  # JIT warm-up (compiled or loaded from the cache)
+        env.step(actions[t])
+    rates = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for t in range(steps):
+            env.step(actions[t % 16])
+        rates.append(steps * env.num_drones / (time.perf_counter() - start))
+    airborne = float((env.get_state().pos[:, 2] > cfg.physics.floor_z + 1e-9).mean())
+    return dict(N=num_agents, E=num_envs, M=env.num_drones, dtype=dtype, best=max(rates),
+                median=float(np.median(rates)), airborne=airborne)
+
+
+def compile_times(dtype: str, core: int) -> dict:
+    """(import s, build + first step s) in a fresh process: cold cache, then warm cache."""
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="numba_cache_") as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=str(ROOT))
+        for label in ("cold", "warm"):
+            res = subprocess.run(["taskset", "-c", str(core), sys.executable, "-c",
+                                  COMPILE_SNIPPET.format(dtype=dtype)],
+                                 env=env, cwd=ROOT, capture_output=True, text=True, check=True)
+            imp, first = map(float, res.stdout.split())
+            out[label] = (imp, first)
+    return out
+
+
+def machine() -> str:
+    model = platform.processor() or "unknown cpu"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import numba
+    return (f"{model}, {os.cpu_count()} cores, numba {numba.__version__}, numpy {np.__version__}, "
+            f"Python {platform.python_version()}, {platform.system()} {platform.machine()}")
+
+
+def commit() -> str:
+    try:
+        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                             text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "quad_env", "benchmarks/env_throughput.py"],
+                               cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        return sha + (" (quad_env modified)" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def load_average() -> str:
+    try:
+        return " ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--agents", default="1,8,32,128", help="comma-separated swarm sizes N")
+    parser.add_argument("--drones", type=int, default=8192, help="drones per step call (E = drones // N)")
+    parser.add_argument("--dtypes", default="float64,float32", help="simulator state dtypes to measure")
+    parser.add_argument("--steps", type=int, default=40, help="control steps per timed window")
+    parser.add_argument("--repeats", type=int, default=10, help="timed windows per figure (best is kept)")
+    parser.add_argument("--core", type=int, default=None, help="CPU core to pin to (default: the first one)")
+    parser.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
+    parser.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
+    args = parser.parse_args(argv)
+    agents = [int(n) for n in args.agents.split(",") if n]
+    dtypes = [d for d in args.dtypes.split(",") if d]
+    core = args.core if args.core is not None else min(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {core})  # one core, like `taskset -c core`
+    load_before = load_average()
+
+    compile_rows = {d: compile_times(d, core) for d in dtypes} if not args.no_compile else {}
+    rows = [measure(n, args.drones, d, args.steps, args.repeats) for d in dtypes for n in agents]
+
+    lines = ["| N | E | dtype | agent-steps/s (best) | median | ns / agent-step | airborne at end | target |",
+             "|---|---|---|---|---|---|---|---|"]
+    verdicts = []
+    for r in rows:
+        target = TARGETS.get(r["N"])
+        tgt = "" if target is None else f">= {target:,}: {'met' if r['best'] >= target else 'NOT met'}"
+        lines.append(f"| {r['N']} | {r['E']} | {r['dtype']} | {r['best']:,.0f} | {r['median']:,.0f} "
+                     f"| {1e9 / r['best']:.0f} | {r['airborne']:.0%} | {tgt} |")
+        if target is not None and r["dtype"] == dtypes[0]:
+            verdicts.append(f"N = {r['N']}: {r['best']:,.0f} vs {target:,} -> {'met' if r['best'] >= target else 'NOT met'}")
+    compile_lines = []
+    for d, c in compile_rows.items():
+        compile_lines.append(f"- compile ({d} state): cold cache {c['cold'][1]:.1f} s (build env + first step; "
+                             f"import {c['cold'][0]:.1f} s), warm cache {c['warm'][1]:.2f} s "
+                             f"(import {c['warm'][0]:.1f} s)")
+    command = "python -m benchmarks.env_throughput " + " ".join(sys.argv[1:] if argv is None else argv)
+    section = "\n".join([
+        f"## env_throughput — {datetime.datetime.now().isoformat(timespec='seconds')}",
+        "",
+        f"- command: `{command.strip()}`",
+        f"- commit: {commit()}",
+        f"- machine: {machine()}; pinned to core {core}; load average before: {load_before}",
+        f"- K = 6 full neighbours, static_same_goal, thrust + sensor noise on, downwash on, uniform random actions, "
+        f"{args.drones} drones per step call; best (and median) of {args.repeats} windows of {args.steps} steps "
+        f"after a 5-step warm-up; 'airborne' = share of drones off the floor at the end (random actions mostly "
+        f"crash them)",
+        *compile_lines,
+        "",
+        *lines,
+        "",
+        "Targets (first dtype): " + "; ".join(verdicts) + ".",
+        "",
+    ])
+    print(section)
+    if not args.no_append:
+        with RESULTS.open("a") as fh:
+            if fh.tell() == 0:
+                fh.write("# Benchmark results\n\nOne section per run, appended by the benchmark scripts.\n\n")
+            fh.write(section + "\n")
+        print(f"appended to {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()
