@@ -50,6 +50,17 @@ NUM_ACC = 11
 
 
 # ====================================================================== single drone
+@njit(cache=True, inline="always")
+def _bounce(p, v, lo, hi, restitution):
+    """Keep the coordinate p in [lo, hi]: a drone past a wall is put back on it and its outward speed is
+    reversed and damped. Returns (p, v, 1 if it hit)."""
+    if p > hi:
+        return hi, (-restitution * v if v > 0.0 else v), 1
+    if p < lo:
+        return lo, (-restitution * v if v < 0.0 else v), 1
+    return p, v, 0
+
+
 @njit(cache=True)
 def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
     """``substeps`` physics steps of drone ``i`` under ``action[i]``; returns 1 if it touched the room.
@@ -181,36 +192,19 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
             if vz <= 0.0:  # landing or resting (a drone taking off has vz > 0)
                 vx, vy, vz = 0.0, 0.0, 0.0
                 wx, wy, wz = 0.0, 0.0, 0.0
-                yaw = np.arctan2(r10, r00)
-                cy, sy = np.cos(yaw), np.sin(yaw)
-                r00, r01, r02 = cy, -sy, 0.0
-                r10, r11, r12 = sy, cy, 0.0
-                r20, r21, r22 = 0.0, 0.0, 1.0
-        elif pz > height:
-            touched = 1
-            pz = height
-            if vz > 0.0:
-                vz = -wall_rest * vz
-        if px > half:
-            touched = 1
-            px = half
-            if vx > 0.0:
-                vx = -wall_rest * vx
-        elif px < -half:
-            touched = 1
-            px = -half
-            if vx < 0.0:
-                vx = -wall_rest * vx
-        if py > half:
-            touched = 1
-            py = half
-            if vy > 0.0:
-                vy = -wall_rest * vy
-        elif py < -half:
-            touched = 1
-            py = -half
-            if vy < 0.0:
-                vy = -wall_rest * vy
+                if r22 != 1.0:  # level it, keeping the heading (a drone already resting level stays as is)
+                    yaw = np.arctan2(r10, r00)
+                    cy, sy = np.cos(yaw), np.sin(yaw)
+                    r00, r01, r02 = cy, -sy, 0.0
+                    r10, r11, r12 = sy, cy, 0.0
+                    r20, r21, r22 = 0.0, 0.0, 1.0
+        else:
+            pz, vz, hit = _bounce(pz, vz, floor_z, height, wall_rest)  # (only the ceiling can be hit here)
+            touched |= hit
+        px, vx, hit = _bounce(px, vx, -half, half, wall_rest)
+        touched |= hit
+        py, vy, hit = _bounce(py, vy, -half, half, wall_rest)
+        touched |= hit
 
     rng[e] = stream
     motor[i, 0], motor[i, 1], motor[i, 2], motor[i, 3] = w0, w1, w2, w3

@@ -88,7 +88,8 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
         level[:, 2, 2] = 1
         vel[land] = 0
         omega[land] = 0
-        rot[land] = level[land]
+        relevel = land & (rot[:, 2, 2] != 1.0)  # a drone resting level keeps its rotation
+        rot[relevel] = level[relevel]
         ceiling = ~on_floor & (pos[:, 2] > p.room_height)
         vel[:, 2] = np.where(ceiling & (vel[:, 2] > 0), -p.wall_restitution * vel[:, 2], vel[:, 2])
         pos[:, 2] = np.where(ceiling, p.room_height, pos[:, 2])
