@@ -47,6 +47,19 @@ class RunResult:
     final_eval: Optional[Dict[str, float]] = None
 
 
+def fresh_run_dir(root: Path, name: str) -> Path:
+    """``root/name``, or ``root/name_2``, ``_3``... if that already holds a run: a new run never
+    overwrites an old one (resume one explicitly with ``--resume``)."""
+    candidate, n = root / name, 1
+    while (candidate / "config.yaml").exists():
+        n += 1
+        candidate = root / f"{name}_{n}"
+    if n > 1:
+        log.warning("%s already holds a run; this run goes to %s (resume the old one with --resume)",
+                    root / name, candidate)
+    return candidate
+
+
 def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -108,10 +121,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     import encoders
     validate(cfg, known_encoders=encoders.ENCODERS)
     if resume_dir is None:
-        run_dir = Path(cfg.runner.run_dir) / (cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
-        if (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
-            raise FileExistsError(f"{run_dir} already holds checkpoints; resume it with --resume {run_dir} "
-                                  f"or choose another runner.name")
+        run_dir = fresh_run_dir(Path(cfg.runner.run_dir), cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
     run_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, run_dir / "config.yaml")
 

@@ -154,10 +154,12 @@ def test_run_dir_contents_and_resume_continues_counters(tmp_path):
     assert len(list((run_dir / "wandb").glob("offline-run-*"))) >= 1
 
 
-def test_new_run_refuses_to_overwrite_a_run_with_checkpoints(tmp_path):
-    train(tiny_config(tmp_path, "o"), progress=False)
-    with pytest.raises(FileExistsError, match="--resume"):
-        train(tiny_config(tmp_path, "o"), progress=False)
+def test_new_run_never_overwrites_an_old_run(tmp_path):
+    first = train(tiny_config(tmp_path, "o"), progress=False)
+    before = {p.name: p.read_bytes() for p in (first.run_dir / "checkpoints").iterdir()}
+    second = train(tiny_config(tmp_path, "o"), progress=False)
+    assert first.run_dir == tmp_path / "o" and second.run_dir == tmp_path / "o_2"
+    assert {p.name: p.read_bytes() for p in (first.run_dir / "checkpoints").iterdir()} == before
 
 
 # --------------------------------------------------------------------------- Ray
