@@ -58,3 +58,50 @@ def compare_with_random(env_cfg: EnvConfig, model: torch.nn.Module, num_episodes
     if out.get("eval_random/dist"):
         out["eval/dist_ratio_to_random"] = out["eval/dist"] / out["eval_random/dist"]
     return out
+
+
+def load_policy_from_checkpoint(path: str):
+    """(TrainConfig, model) from a checkpoint file or a run directory (its latest valid checkpoint)."""
+    import os
+
+    from quad_env import ObsLayout
+    from swarm_appo.checkpoint import load_checkpoint, load_latest_checkpoint
+    from swarm_appo.config import config_from_dict
+    from swarm_appo.model import model_factory
+
+    if os.path.isdir(path):
+        state, found = load_latest_checkpoint(path)
+        if state is None:
+            raise FileNotFoundError(f"no valid checkpoint in {path}/checkpoints")
+    else:
+        state = load_checkpoint(path)
+    cfg = config_from_dict(state["config"])
+    model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)()
+    model.load_state_dict(state["learner"]["model"])
+    return cfg, model
+
+
+def main(argv=None) -> int:
+    """``python -m swarm_appo.evaluate --checkpoint runs/quickstart``: trained vs random policy."""
+    import argparse
+    import dataclasses
+
+    p = argparse.ArgumentParser(prog="swarm-eval", description=main.__doc__)
+    p.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
+    p.add_argument("--episodes", type=int, default=8, help="seeded swarm episodes per policy")
+    p.add_argument("--num-agents", type=int, default=None, help="swarm size (default: as trained)")
+    p.add_argument("--scenario", default=None, help="scenario (default: as trained)")
+    p.add_argument("--seed", type=int, default=12345)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    cfg, model = load_policy_from_checkpoint(args.checkpoint)
+    env_cfg = dataclasses.replace(cfg.env, **{k: v for k, v in (("num_agents", args.num_agents),
+                                                                ("scenario", args.scenario)) if v is not None})
+    result = compare_with_random(env_cfg, model, args.episodes, args.seed)
+    for k in sorted(result):
+        print(f"{k:32s} {result[k]:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
