@@ -35,7 +35,8 @@ def _interrupt(signum, frame):
 def main(argv: Optional[List[str]] = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from swarm_appo.config import ConfigError, load_config
+    import encoders
+    from swarm_appo.config import ConfigError, load_config, validate
     from swarm_appo.trainer import train
 
     try:
@@ -46,6 +47,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                 cfg = load_config(base, args.overrides)
         else:
             cfg = load_config(args.config, args.overrides)
+        if cfg is not None:
+            validate(cfg, known_encoders=encoders.ENCODERS)
     except (ConfigError, FileNotFoundError) as exc:
         print(f"config error: {exc}", file=sys.stderr)
         return 2

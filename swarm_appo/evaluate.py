@@ -50,6 +50,11 @@ def summarize(episodes: List[Dict], prefix: str) -> Dict[str, float]:
             if episodes and k in episodes[0]}
 
 
+def default_eval_seed(train_seed: int) -> int:
+    """Evaluation episodes are seeded apart from training's, and the same for the end-of-run and CLI evaluation."""
+    return train_seed + 1_000_003
+
+
 def compare_with_random(env_cfg: EnvConfig, model: torch.nn.Module, num_episodes: int = 8,
                         seed: int = 12345) -> Dict[str, float]:
     """``eval/*`` (trained, mean actions) and ``eval_random/*`` metrics on the same episodes."""
@@ -91,13 +96,15 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=8, help="seeded swarm episodes per policy")
     p.add_argument("--num-agents", type=int, default=None, help="swarm size (default: as trained)")
     p.add_argument("--scenario", default=None, help="scenario (default: as trained)")
-    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--seed", type=int, default=None,
+                   help="episode seed (default: the one the end-of-run evaluation used)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     cfg, model = load_policy_from_checkpoint(args.checkpoint)
     env_cfg = dataclasses.replace(cfg.env, **{k: v for k, v in (("num_agents", args.num_agents),
                                                                 ("scenario", args.scenario)) if v is not None})
-    result = compare_with_random(env_cfg, model, args.episodes, args.seed)
+    seed = default_eval_seed(cfg.runner.seed) if args.seed is None else args.seed
+    result = compare_with_random(env_cfg, model, args.episodes, seed)
     for k in sorted(result):
         print(f"{k:32s} {result[k]:.4f}")
     return 0

@@ -26,7 +26,7 @@ from quad_env import ObsLayout, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
 from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
-from swarm_appo.evaluate import compare_with_random
+from swarm_appo.evaluate import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
 from swarm_appo.model import model_factory
@@ -251,7 +251,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     final_eval: Dict[str, float] = {}
     if cfg.runner.final_eval_episodes > 0 and not interrupted:
         final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
-                                         seed=cfg.runner.seed + 1_000_003)
+                                         seed=default_eval_seed(cfg.runner.seed))
         logger.log(agent_steps, final_eval)
     logger.close()
     return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted, final_eval)
