@@ -109,6 +109,8 @@ class RunnerConfig:
     """Backpressure: at most this many fragments requested but not yet trained on; 0 = 2 per worker."""
     total_agent_steps: int = 50_000_000
     """Training budget in agent steps (one drone, one control step)."""
+    time_limit_s: float = 0.0
+    """Also stop after this many seconds of training (wall clock, this process); 0 = no limit."""
     device: str = "auto"
     """Learner device: "auto" (cuda when present, else cpu), "cpu", "cuda" or "cuda:<index>"."""
     checkpoint_every_s: float = 600.0
@@ -451,6 +453,7 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
         raise ConfigError(f"runner.max_fragments_in_flight ({r.max_fragments_in_flight}) is below runner.num_workers "
                           f"({r.num_workers}): some workers could never run; use >= {r.num_workers} or 0 (auto)")
     _check(r.total_agent_steps >= 1, "runner.total_agent_steps", "must be >= 1", r.total_agent_steps)
+    _check(r.time_limit_s >= 0, "runner.time_limit_s", "must be >= 0 (0 = no limit)", r.time_limit_s)
     _check(r.device in DEVICES or re.fullmatch(r"cuda:\d+", r.device) is not None, "runner.device",
            f"must be one of {list(DEVICES)} or 'cuda:<index>'", r.device)
     _check(r.checkpoint_every_s >= 0, "runner.checkpoint_every_s", "must be >= 0", r.checkpoint_every_s)

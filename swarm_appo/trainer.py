@@ -177,7 +177,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     last_reward: Optional[float] = None
     interrupted = False
     try:
-        while agent_steps < cfg.runner.total_agent_steps:
+        time_limit = cfg.runner.time_limit_s or float("inf")
+        while agent_steps < cfg.runner.total_agent_steps and time.perf_counter() - t_start < time_limit:
             t0 = time.perf_counter()
             frag = sampler.get()  # [T, B] fragment
             timers["wait"] += time.perf_counter() - t0
