@@ -139,3 +139,25 @@ def test_sensor_noise_only_on_own_state(quiet_cfg):
     assert 1e-4 < np.abs(err_pos).max() < 0.03 and 0 < np.abs(err_w).max() < 1e-3
     np.testing.assert_allclose(ObsLayout.as_matrix(f["self.rot"]), st["rot"], atol=1e-6)
     np.testing.assert_allclose(f["neighbor.rel_pos"][0], st["pos"][[1, 2]] - st["pos"][0], atol=1e-6)
+
+
+@pytest.mark.parametrize("radius", [None, 0.6])
+def test_k_nearest_at_128_drones_match_brute_force(quiet_cfg, radius):
+    n, k = 128, 6
+    env = make_env(quiet_cfg, n, k=k, sensing_radius=radius)
+    rng = np.random.default_rng(11)
+    pos = rng.uniform([-2, -2, 1], [2, 2, 4], (n, 3))
+    pos[[7, 5, 9]] = [[0.5, 0.5, 2.0], [0.625, 0.5, 2.0], [0.375, 0.5, 2.0]]  # exact tie: 5 and 9 for drone 7
+    assert np.sort(np.linalg.norm(pos - pos[7], axis=1))[3] > 0.125  # nobody else as close
+    env.set_state(pos=pos, vel=rng.normal(size=(n, 3)), goal=pos)
+    f = env.layout.split(env.observe().astype(np.float64))
+    d2 = ((pos[:, None] - pos[None]) ** 2).sum(-1)
+    for i in range(n):
+        others = np.delete(np.arange(n), i)
+        order = others[np.lexsort((others, d2[i, others]))][:k]
+        if radius is not None:
+            order = order[d2[i, order] <= radius ** 2]
+        m = len(order)
+        np.testing.assert_array_equal(f["mask"][i], [1] * m + [0] * (k - m))
+        np.testing.assert_allclose(f["neighbor.rel_pos"][i, :m], pos[order] - pos[i], atol=1e-6)
+    assert f["neighbor.rel_pos"][7, 0] == pytest.approx(pos[5] - pos[7], abs=1e-6)  # lower index first

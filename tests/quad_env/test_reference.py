@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from quad_env import PhysicsConfig, VecQuadEnv
+from quad_env import VecQuadEnv
 from quad_env.kernels import NUM_ACC, step_kernel
 from quad_env.reference import reference_step
 
@@ -118,4 +118,3 @@ def test_reference_catches_a_wrong_kernel_constant(quiet_cfg):
     ks, *_ = kernel_step(env, state, actions, np.zeros(1, np.int64), contact)
     rs, *_ = reference_step(state, actions, heavier, np.zeros(1, np.int64), contact)
     assert np.abs(ks["vel"] - rs["vel"]).max() > 1e-6
-    assert PhysicsConfig().mass == 0.028
