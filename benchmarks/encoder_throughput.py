@@ -13,42 +13,18 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
-import subprocess
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from benchmarks.common import append_results, best_time, commit, machine, sgemm_rate
 from encoders import ENCODERS, make_encoder
 from encoders.testing import random_obs
 from quad_env.obs_layout import ObsLayout
 
-RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
 TARGET = ("se3_graphormer", 0.30)  # forward+backward share of the sgemm rate the issue asks for
-
-
-def best_time(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
-
-
-def sgemm_rate(repeats: int) -> float:
-    """float32 FLOP/s of a 1024 x 1024 x 1024 matmul on this thread."""
-    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
-
-    def ten():
-        for _ in range(10):
-            a @ b
-    return 10 * 2 * 1024 ** 3 / best_time(ten, repeats)
 
 
 def counted_flops(fn) -> int:
@@ -75,30 +51,6 @@ def measure(name: str, layout: ObsLayout, obs: torch.Tensor, repeats: int) -> di
     row["fwd_s"] = best_time(forward, repeats)
     row["fb_s"] = best_time(train_step, repeats)
     return row
-
-
-def machine() -> str:
-    model = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} cores, torch {torch.__version__}, {platform.system()} {platform.machine()}"
-
-
-def commit() -> str:
-    root = Path(__file__).resolve().parent.parent
-    try:
-        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
-                             text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "encoders", "benchmarks/encoder_throughput.py"],
-                               cwd=root, capture_output=True, text=True).stdout.strip()
-        return sha + (" (encoders modified)" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def main(argv=None) -> None:
@@ -148,12 +100,12 @@ def main(argv=None) -> None:
         f"## encoder_throughput — {datetime.datetime.now().isoformat(timespec='seconds')}",
         "",
         f"- command: `{command.strip()}`",
-        f"- commit: {commit()}",
-        f"- machine: {machine()}; 1 thread pinned to core {core}",
+        f"- commit: {commit(['encoders', 'benchmarks/encoder_throughput.py'])}",
+        f"- machine: {machine(f'torch {torch.__version__}')}; 1 thread pinned to core {core}",
         f"- batch {B}, K = {args.num_neighbors} (all slots real), float32, paper sizes; best of {args.repeats} runs",
         f"- sgemm 1024^3 float32: {peak / 1e9:.1f} GFLOP/s (best of a measurement before and after the encoders;"
         f" after: {peak_after / 1e9:.1f}); the % columns divide by it",
-        f"- FLOPs: matmul FLOPs counted by torch.utils.flop_counter (elementwise ops not counted)",
+        "- FLOPs: matmul FLOPs counted by torch.utils.flop_counter (elementwise ops not counted)",
         "",
         *lines,
         "",
@@ -162,11 +114,7 @@ def main(argv=None) -> None:
     ])
     print(section)
     if not args.no_append:
-        with RESULTS.open("a") as fh:
-            if fh.tell() == 0:
-                fh.write("# Benchmark results\n\nOne section per run, appended by the benchmark scripts.\n\n")
-            fh.write(section + "\n")
-        print(f"appended to {RESULTS}")
+        append_results(section)
 
 
 if __name__ == "__main__":

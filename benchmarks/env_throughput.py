@@ -16,17 +16,15 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
-ROOT = Path(__file__).resolve().parent.parent
+from benchmarks.common import ROOT, append_results, commit, load_average, machine
+
 TARGETS = {8: 1_000_000, 128: 500_000}  # agent-steps/s on one core (the issue's targets)
 
 COMPILE_SNIPPET = """
@@ -77,36 +75,9 @@ def compile_times(dtype: str, core: int) -> dict:
     return out
 
 
-def machine() -> str:
-    model = platform.processor() or "unknown cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+def numba_versions() -> str:
     import numba
-    return (f"{model}, {os.cpu_count()} cores, numba {numba.__version__}, numpy {np.__version__}, "
-            f"Python {platform.python_version()}, {platform.system()} {platform.machine()}")
-
-
-def commit() -> str:
-    try:
-        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                             text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "quad_env", "benchmarks/env_throughput.py"],
-                               cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        return sha + (" (quad_env modified)" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def load_average() -> str:
-    try:
-        return " ".join(f"{v:.2f}" for v in os.getloadavg())
-    except OSError:
-        return "n/a"
+    return f"numba {numba.__version__}, numpy {np.__version__}"
 
 
 def main(argv=None) -> None:
@@ -149,8 +120,8 @@ def main(argv=None) -> None:
         f"## env_throughput — {datetime.datetime.now().isoformat(timespec='seconds')}",
         "",
         f"- command: `{command.strip()}`",
-        f"- commit: {commit()}",
-        f"- machine: {machine()}; pinned to core {core}; load average before: {load_before}",
+        f"- commit: {commit(['quad_env', 'benchmarks/env_throughput.py'])}",
+        f"- machine: {machine(numba_versions())}; pinned to core {core}; load average before: {load_before}",
         f"- K = 6 full neighbours, static_same_goal, thrust + sensor noise on, downwash on, uniform random actions, "
         f"{args.drones} drones per step call; best (and median) of {args.repeats} windows of {args.steps} steps "
         f"after a 5-step warm-up; 'airborne' = share of drones off the floor at the end (random actions mostly "
@@ -164,11 +135,7 @@ def main(argv=None) -> None:
     ])
     print(section)
     if not args.no_append:
-        with RESULTS.open("a") as fh:
-            if fh.tell() == 0:
-                fh.write("# Benchmark results\n\nOne section per run, appended by the benchmark scripts.\n\n")
-            fh.write(section + "\n")
-        print(f"appended to {RESULTS}")
+        append_results(section)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,75 @@
+"""What every benchmark shares: the machine and commit it ran on, timing, the matmul roofline, RESULTS.md."""
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
+
+
+def machine(extra: str = "") -> str:
+    """CPU model, cores, OS (and whatever the caller adds, e.g. library versions)."""
+    model = platform.processor() or "unknown cpu"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    text = f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()} {platform.machine()}"
+    return f"{text}, {extra}" if extra else text
+
+
+def commit(paths: Sequence[str] = ()) -> str:
+    """Short HEAD sha, marked when the measured code (``paths``) has uncommitted changes."""
+    try:
+        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                             text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", *paths], cwd=ROOT, capture_output=True,
+                               text=True).stdout.strip() if paths else ""
+        return sha + (f" ({', '.join(paths)} modified)" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def load_average() -> str:
+    try:
+        return " ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def best_time(fn: Callable[[], object], repeats: int) -> float:
+    """Best wall time of ``repeats`` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def sgemm_rate(repeats: int = 3, size: int = 1024) -> float:
+    """float32 FLOP/s of a size^3 matmul with the current torch thread setting."""
+    import torch
+
+    a, b = torch.randn(size, size), torch.randn(size, size)
+
+    def ten():
+        for _ in range(10):
+            a @ b
+    return 10 * 2 * size ** 3 / best_time(ten, repeats)
+
+
+def append_results(section: str) -> None:
+    """Append one section (Markdown) to benchmarks/RESULTS.md."""
+    with RESULTS.open("a") as fh:
+        fh.write("\n" + section.rstrip() + "\n")
+    print(f"appended to {RESULTS}")

@@ -1,0 +1,138 @@
+"""End-to-end training throughput: agent-steps/s of the whole trainer (Ray workers + learner) per encoder.
+
+    python -m benchmarks.training_throughput                       # paper sizes, N = 8, 5 and 1 epochs
+    python -m benchmarks.training_throughput --encoders deepsets --epochs 1 --seconds 60
+
+For each encoder and epoch count it trains with ``configs/paper.yaml`` (the paper's model sizes and
+hyperparameters) for ``--seconds`` and reports, after a warm-up, agent-steps/s, mean/max policy lag and
+the share of time per phase. The roofline is the matmul bound: FLOPs per agent step (one inference
+forward of actor and critic + ``epochs`` x forward-and-backward of the training loss, counted by
+torch's FlopCounterMode) against the float32 matmul rate of the cores used (one-thread sgemm rate x
+cores, measured in the same run). Figures are appended to benchmarks/RESULTS.md.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from benchmarks.common import ROOT, append_results, commit, load_average, machine, sgemm_rate
+from encoders.testing import random_obs
+from quad_env import ObsLayout
+from swarm_appo.config import load_config
+from swarm_appo.model import model_factory
+
+DEFAULT_ENCODERS = ("deepsets", "kattention", "se3_kattention", "se3_graphormer")
+
+
+def flops_per_agent_step(cfg, batch: int = 512) -> dict:
+    """Counted matmul FLOPs per agent step: inference (actor + critic forward) and training per epoch."""
+    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    model = model_factory(layout, cfg.model)()
+    obs = torch.as_tensor(random_obs(layout, batch, np.random.default_rng(0)), dtype=torch.float32)
+    with FlopCounterMode(display=False) as fc:
+        with torch.no_grad():
+            model(obs)
+    inference = fc.get_total_flops() / batch
+    actions = torch.randn(batch, 4)
+    with FlopCounterMode(display=False) as fc:
+        log_prob, entropy, value = model.evaluate(obs, actions)
+        (log_prob.mean() + entropy.mean() + value.pow(2).mean()).backward()
+    train_epoch = fc.get_total_flops() / batch
+    return {"inference": inference, "train_epoch": train_epoch,
+            "total": inference + cfg.algo.num_epochs * train_epoch}
+
+
+def measure_run(run_dir: Path, warmup_fraction: float = 0.3) -> dict:
+    """Steady-state figures from a run's metrics.jsonl (records after the warm-up fraction of its time)."""
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    records = [r for r in records if "perf/learner_share" in r]
+    if len(records) < 3:
+        raise RuntimeError(f"only {len(records)} learner iterations in {run_dir}: raise --seconds")
+    t0, t1 = records[0]["charts/elapsed_s"], records[-1]["charts/elapsed_s"]
+    steady = [r for r in records if r["charts/elapsed_s"] >= t0 + warmup_fraction * (t1 - t0)]
+    first, last = steady[0], steady[-1]
+    sps = (last["global_step"] - first["global_step"]) / max(last["charts/elapsed_s"] - first["charts/elapsed_s"], 1e-9)
+    mean = lambda key: float(np.mean([r[key] for r in steady[1:]]))  # noqa: E731
+    return {"sps": sps, "lag_mean": mean("lag/mean"), "lag_max": max(r["lag/max"] for r in steady),
+            "learner_share": mean("perf/learner_share"), "transfer_share": mean("perf/transfer_share"),
+            "env_share": mean("perf/env_share"), "inference_share": mean("perf/inference_share"),
+            "agent_steps": last["global_step"]}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--encoders", default=",".join(DEFAULT_ENCODERS))
+    p.add_argument("--epochs", default="5,1", help="comma-separated epoch counts (paper: 5)")
+    p.add_argument("--seconds", type=float, default=90.0, help="training time per configuration")
+    p.add_argument("--num-agents", type=int, default=8)
+    p.add_argument("--config", default=str(ROOT / "configs" / "paper.yaml"))
+    p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
+    p.add_argument("overrides", nargs="*", help="extra config overrides (key=value)")
+    args = p.parse_args(argv)
+    os.environ.setdefault("WANDB_SILENT", "true")
+
+    cores = os.cpu_count() or 1
+    torch.set_num_threads(1)
+    per_core = sgemm_rate()
+    roof_rate = per_core * cores
+    print(f"sgemm: {per_core / 1e9:.1f} GFLOP/s per core x {cores} cores = {roof_rate / 1e9:.1f} GFLOP/s")
+
+    from swarm_appo.trainer import train  # after the thread setting above, which train() overrides anyway
+
+    rows = []
+    tmp = Path(tempfile.mkdtemp(prefix="train_bench_"))
+    for encoder in args.encoders.split(","):
+        for epochs in (int(e) for e in args.epochs.split(",")):
+            name = f"{encoder}_e{epochs}"
+            cfg = load_config(args.config, [
+                f"model.encoder={encoder}", f"algo.num_epochs={epochs}", f"env.num_agents={args.num_agents}",
+                f"runner.time_limit_s={args.seconds}", "runner.total_agent_steps=10000000000",
+                "runner.final_eval_episodes=0", "runner.checkpoint_every_s=100000", "wandb.mode=disabled",
+                f"runner.run_dir={tmp}", f"runner.name={name}", *args.overrides])
+            flops = flops_per_agent_step(cfg)
+            result = train(cfg, progress=False)
+            m = measure_run(result.run_dir)
+            roofline_sps = roof_rate / flops["total"]
+            row = dict(encoder=encoder, epochs=epochs, **m, mflop_per_step=flops["total"] / 1e6,
+                       roofline_sps=roofline_sps, fraction=m["sps"] / roofline_sps)
+            rows.append(row)
+            print(f"{name}: {m['sps']:,.0f} agent-steps/s, {flops['total'] / 1e6:.2f} MFLOP/step, roofline "
+                  f"{roofline_sps:,.0f} -> {100 * row['fraction']:.0f}%, lag mean {m['lag_mean']:.1f} max "
+                  f"{m['lag_max']:.0f}", flush=True)
+
+    header = ("| encoder | epochs | agent-steps/s | MFLOP/agent-step | roofline steps/s | % of roofline | "
+              "lag mean / max | learner / transfer share | worker env / inference share |\n"
+              "|---|---|---|---|---|---|---|---|---|")
+    lines = [f"| {r['encoder']} | {r['epochs']} | {r['sps']:,.0f} | {r['mflop_per_step']:.2f} | "
+             f"{r['roofline_sps']:,.0f} | {100 * r['fraction']:.0f}% | {r['lag_mean']:.1f} / {r['lag_max']:.0f} | "
+             f"{r['learner_share']:.2f} / {r['transfer_share']:.2f} | {r['env_share']:.2f} / "
+             f"{r['inference_share']:.2f} |" for r in rows]
+    section = "\n".join([
+        f"## training_throughput — {datetime.datetime.now().isoformat(timespec='seconds')}",
+        "",
+        f"- command: `python -m benchmarks.training_throughput {' '.join(argv if argv is not None else sys.argv[1:])}`",
+        f"- commit: {commit(['swarm_appo', 'encoders', 'quad_env'])}",
+        f"- machine: {machine(f'torch {torch.__version__}')}; load average before: {load_average()}",
+        f"- config: {Path(args.config).name} (paper sizes), N = {args.num_agents}, {args.seconds:.0f} s per row, "
+        f"figures after a 30% warm-up",
+        f"- roofline: sgemm {per_core / 1e9:.1f} GFLOP/s per core x {cores} cores; FLOPs = inference forward "
+        f"(actor + critic) + epochs x training forward+backward, counted by FlopCounterMode (matmuls only)",
+        "",
+        header, *lines,
+    ])
+    print(section)
+    if not args.no_append:
+        append_results(section)
+
+
+if __name__ == "__main__":
+    main()
