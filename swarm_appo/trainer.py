@@ -17,7 +17,7 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 import torch
@@ -106,8 +106,12 @@ def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
 
 
 def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress: bool = True,
-          overrides_on_resume: Optional[Dict[str, Any]] = None) -> RunResult:
-    """Run (or resume) one training run; returns where it ended."""
+          on_iteration: Optional[Callable[[int, Any], None]] = None) -> RunResult:
+    """Run (or resume) one training run; returns where it ended.
+
+    ``on_iteration(policy_version, sampler)``, if given, is called after every learner iteration
+    (monitoring, fault-injection in tests).
+    """
     # ---------------------------------------------------------------- run directory and config
     state = None
     if resume_dir is not None:
@@ -223,6 +227,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             })
             record.update(system_metrics())
             logger.log(agent_steps, record)
+            if on_iteration is not None:
+                on_iteration(learner.version, sampler)
             timers.clear()
             t_log, steps_at_log = now, agent_steps
             if bar is not None:

@@ -207,3 +207,41 @@ def test_killed_rollout_actor_is_replaced_and_sampling_goes_on(tmp_path, local_r
         assert victim not in sampler.worker_pids()
     finally:
         sampler.close()
+
+
+def test_killing_a_rollout_actor_mid_run_does_not_stop_training(tmp_path, local_ray):
+    cfg = tiny_config(tmp_path, "kill", **{"runner.serial": "false", "runner.num_workers": 2,
+                                            "runner.total_agent_steps": 960})
+    killed = []
+
+    def kill_once(version, sampler):
+        if version == 3 and not killed:
+            killed.append(sampler.worker_pids()[1])
+            os.kill(killed[0], signal.SIGKILL)
+
+    res = train(cfg, progress=False, on_iteration=kill_once)
+    assert killed and res.worker_restarts == 1
+    assert res.agent_steps >= 960
+    records = [r for r in read_metrics(res.run_dir) if "perf/worker_restarts" in r]
+    assert records[-1]["perf/worker_restarts"] == 1
+    assert records[-1]["global_step"] > records[2]["global_step"], "training went on after the kill"
+
+
+def test_learner_failure_ends_with_a_resumable_run_dir(tmp_path, monkeypatch):
+    cfg = tiny_config(tmp_path, "fail", **{"runner.total_agent_steps": 640})
+    real_train = Learner.train
+
+    def failing_train(self, fragments):
+        if self.version == 3:
+            raise MemoryError("simulated learner death")
+        return real_train(self, fragments)
+
+    monkeypatch.setattr(Learner, "train", failing_train)
+    with pytest.raises(RuntimeError, match="--resume") as info:
+        train(cfg, progress=False)
+    assert "simulated learner death" in str(info.value)
+    monkeypatch.setattr(Learner, "train", real_train)
+    resumed = train(None, resume_dir=str(tmp_path / "fail"), progress=False)
+    assert resumed.agent_steps >= 640
+    steps = [r["global_step"] for r in read_metrics(resumed.run_dir) if "losses/loss" in r]
+    assert steps == sorted(steps) and len(set(steps)) == len(steps), "resumed records continue the counters"
