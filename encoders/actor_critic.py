@@ -17,6 +17,7 @@ from torch import nn
 from quad_env.obs_layout import ObsLayout
 
 from .common import mlp, xavier_init_
+from .obs_norm import FieldScaleNorm
 from .registry import make_encoder
 
 HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -40,28 +41,40 @@ class ActorCritic(nn.Module):
         head_hidden: hidden width of the actor and critic heads (paper 256).
         head_activation: nonlinearity of the heads.
         init_log_std: initial value of the learned log standard deviation.
+        normalize_obs: scale each observation field by its running RMS norm first (``FieldScaleNorm``,
+            equivariance-preserving); its statistics change only through ``obs_norm.update``.
+        init_action_mean: initial mean action (the bias of the actor's last layer), e.g. the hover command.
     """
 
     def __init__(self, layout: ObsLayout, encoder: str = "deepsets", encoder_kwargs: Optional[dict] = None,
                  share_encoder: bool = False, action_dim: int = 4, head_hidden: int = 256,
-                 head_activation: str = "tanh", init_log_std: float = 0.0):
+                 head_activation: str = "tanh", init_log_std: float = 0.0, normalize_obs: bool = False,
+                 init_action_mean: float = 0.0):
         super().__init__()
         encoder_kwargs = dict(encoder_kwargs or {})
         self.layout = layout
         self.config = dict(encoder=encoder, encoder_kwargs=encoder_kwargs, share_encoder=share_encoder,
                            action_dim=action_dim, head_hidden=head_hidden, head_activation=head_activation,
-                           init_log_std=init_log_std)
+                           init_log_std=init_log_std, normalize_obs=normalize_obs,
+                           init_action_mean=init_action_mean)
         self.share_encoder = share_encoder
         self.action_dim = action_dim
+        self.obs_norm = FieldScaleNorm(layout) if normalize_obs else None
         self.actor_encoder = make_encoder(encoder, layout, **encoder_kwargs)
         self.critic_encoder = None if share_encoder else make_encoder(encoder, layout, **encoder_kwargs)
         out_dim = self.actor_encoder.out_dim
         self.actor_head = xavier_init_(mlp([out_dim, head_hidden, action_dim], head_activation, last_act=False))
         self.critic_head = xavier_init_(mlp([out_dim, head_hidden, 1], head_activation, last_act=False))
+        with torch.no_grad():
+            self.actor_head[-1].bias.fill_(float(init_action_mean))
         self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
 
     # ------------------------------------------------------------------ pieces
+    def _normalize(self, obs: torch.Tensor) -> torch.Tensor:
+        return obs if self.obs_norm is None else self.obs_norm(obs)
+
     def _features(self, obs: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        obs = self._normalize(obs)
         actor = self.actor_encoder(obs)  # [B, out_dim]
         critic = actor if self.critic_encoder is None else self.critic_encoder(obs)
         return actor, critic
@@ -69,7 +82,7 @@ class ActorCritic(nn.Module):
     def get_value(self, obs: torch.Tensor) -> torch.Tensor:
         """V(obs): [B]."""
         encoder = self.actor_encoder if self.critic_encoder is None else self.critic_encoder
-        return self.critic_head(encoder(obs)).squeeze(-1)
+        return self.critic_head(encoder(self._normalize(obs))).squeeze(-1)
 
     def forward(self, obs: torch.Tensor):
         """``(mean [B, A], log_std [A], value [B])``."""

@@ -50,6 +50,13 @@ class ModelConfig:
     """Nonlinearity of the heads (the paper uses tanh)."""
     init_log_std: float = 0.0
     """Initial log standard deviation of the Gaussian policy (learned, state-independent)."""
+    normalize_obs: bool = False
+    """Divide each observation field by the running RMS of its norm (one scalar per field; rotations and the
+    mask untouched), which keeps the SE(3) encoders exactly equivariant. The learner updates the statistics
+    from every training batch; rollout workers receive them with the weights."""
+    init_action_mean: float = 0.0
+    """Initial mean action (the actor's output bias). 2 / thrust_to_weight - 1 (0.053 for the Crazyflie)
+    is the hover command: the untrained policy then hovers on average instead of sinking."""
 
 
 @dataclass
@@ -421,6 +428,8 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
     if known_encoders is not None and m.encoder not in known_encoders:
         raise ConfigError(f"model.encoder: unknown encoder {m.encoder!r}; valid: {list(known_encoders)}")
     _check(m.head_hidden >= 1, "model.head_hidden", "must be >= 1", m.head_hidden)
+    _check(-1.0 <= m.init_action_mean <= 1.0, "model.init_action_mean", "must be in [-1, 1] (the action range)",
+           m.init_action_mean)
     _check(bool(m.head_activation), "model.head_activation", "must name an activation", m.head_activation)
 
     _check(a.lr > 0, "algo.lr", "must be > 0", a.lr)

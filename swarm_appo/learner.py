@@ -77,6 +77,9 @@ class Learner:
         lag_stats = LagStats()
         lag_stats.update(lag, max_policy_lag=algo.max_policy_lag)
         trunc_values_at = t["final_idx"]  # [M, 2]
+        obs_norm = getattr(self.model, "obs_norm", None)
+        if obs_norm is not None:  # statistics move once per batch, before the epochs (Sample Factory style)
+            obs_norm.update(t["obs"][valid])
 
         cols_per_mb = max(1, algo.batch_size // T)
         stats_sum: Dict[str, float] = {}
