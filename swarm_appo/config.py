@@ -98,6 +98,8 @@ class AlgoConfig:
     """V-trace c-bar: clips the trace-cutting coefficients; None = no clipping."""
     vtrace_pg_rho_clip: Optional[float] = 1.0
     """Clip of the importance weight on the policy-gradient advantage; None = no clipping."""
+    vtrace_lambda: float = 1.0
+    """V-trace trace factor lambda (IMPALA, Remark 2): 1 = plain V-trace; e.g. 0.95 cuts variance like GAE."""
 
 
 @dataclass
@@ -434,6 +436,7 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
 
     _check(a.lr > 0, "algo.lr", "must be > 0", a.lr)
     _check(0 <= a.gamma <= 1, "algo.gamma", "must be in [0, 1]", a.gamma)
+    _check(0 <= a.vtrace_lambda <= 1, "algo.vtrace_lambda", "must be in [0, 1]", a.vtrace_lambda)
     _check(all(0 <= b < 1 for b in a.adam_betas), "algo.adam_betas", "must be two numbers in [0, 1)", a.adam_betas)
     _check(a.adam_eps > 0, "algo.adam_eps", "must be > 0", a.adam_eps)
     _check(a.max_grad_norm > 0, "algo.max_grad_norm", "must be > 0", a.max_grad_norm)

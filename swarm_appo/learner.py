@@ -144,7 +144,7 @@ class Learner:
                 t["rewards"][:, cols], discounts, t["truncated"][:, cols], final_values, algo.gamma)
             vt = vtrace(log_prob.detach() - old_logp, discounts, rewards, values.detach(), bootstrap,
                         clip_rho_threshold=algo.vtrace_rho_clip, clip_c_threshold=algo.vtrace_c_clip,
-                        clip_pg_rho_threshold=algo.vtrace_pg_rho_clip)
+                        clip_pg_rho_threshold=algo.vtrace_pg_rho_clip, lambda_=algo.vtrace_lambda)
 
         return appo_loss(
             log_prob.reshape(-1), old_logp.reshape(-1), vt.pg_advantages.reshape(-1), values.reshape(-1),

@@ -44,6 +44,7 @@ def vtrace(
     clip_rho_threshold: Optional[float] = 1.0,
     clip_c_threshold: Optional[float] = 1.0,
     clip_pg_rho_threshold: Optional[float] = 1.0,
+    lambda_: float = 1.0,
 ) -> VTraceReturns:
     """V-trace targets for one batch of fragments (no gradients flow through the result).
 
@@ -57,6 +58,9 @@ def vtrace(
         clip_rho_threshold: rho_bar, clips the importance weight inside delta_t V (None = no clipping).
         clip_c_threshold: c_bar, clips the trace coefficients c_i (None = no clipping).
         clip_pg_rho_threshold: clips the importance weight of the policy-gradient advantage (None = none).
+        lambda_: trace-cutting factor of IMPALA's Remark 2, ``c_i = lambda * min(c_bar, rho_i)``: 1 is plain
+            V-trace; below 1 trades bias for variance like GAE(lambda) (on-policy, ``vs - V`` is exactly the
+            GAE(lambda) advantage).
 
     Returns:
         ``VTraceReturns(vs [T, B], pg_advantages [T, B])`` in the dtype of ``values``.
@@ -73,7 +77,9 @@ def vtrace(
         t.detach() for t in (log_rhos, discounts, rewards, values, bootstrap_value))
     rhos = torch.exp(log_rhos)  # [T, B]
     clipped_rhos = _clip_above(rhos, clip_rho_threshold)  # [T, B]
-    cs = _clip_above(rhos, clip_c_threshold)  # [T, B]
+    if not 0.0 <= lambda_ <= 1.0:
+        raise ValueError(f"lambda_ must be in [0, 1], got {lambda_}")
+    cs = lambda_ * _clip_above(rhos, clip_c_threshold)  # [T, B]
 
     values_next = torch.cat([values[1:], bootstrap_value.unsqueeze(0)], dim=0)  # [T, B] V(x_{t+1})
     deltas = clipped_rhos * (rewards + discounts * values_next - values)  # [T, B]

@@ -194,3 +194,26 @@ def test_shape_errors_name_the_argument():
         vtrace(z, z, z, z, torch.zeros(4))
     with pytest.raises(ValueError, match="time-major"):
         vtrace(torch.zeros(12), z, z, z, torch.zeros(3))
+
+
+def test_lambda_on_policy_gives_gae_returns():
+    """On-policy, V-trace with lambda is GAE(lambda): vs - V equals the GAE advantage (forward-view sum)."""
+    rng = np.random.default_rng(5)
+    T, B, gamma, lam = 8, 4, 0.9, 0.7
+    discounts = gamma * (rng.random((T, B)) > 0.2)  # episode ends inside the fragment
+    rewards, values, bootstrap = rng.normal(size=(T, B)), rng.normal(size=(T, B)), rng.normal(size=B)
+    vs, _ = run_torch((np.zeros((T, B)), discounts, rewards, values, bootstrap), lambda_=lam)
+    v_ext = np.concatenate([values, bootstrap[None]])
+    deltas = rewards + discounts * v_ext[1:] - values
+    for s in range(T):
+        gae = np.zeros(B)
+        weight = np.ones(B)
+        for t in range(s, T):
+            gae += weight * deltas[t]
+            weight = weight * discounts[t] * lam
+        np.testing.assert_allclose(vs[s] - values[s], gae, rtol=1e-12, atol=1e-12)
+    # lambda = 0 is TD(0): one-step targets
+    vs0, _ = run_torch((np.zeros((T, B)), discounts, rewards, values, bootstrap), lambda_=0.0)
+    np.testing.assert_allclose(vs0, rewards + discounts * v_ext[1:], rtol=1e-12)
+    with pytest.raises(ValueError, match="lambda_"):
+        run_torch((np.zeros((T, B)), discounts, rewards, values, bootstrap), lambda_=1.5)
