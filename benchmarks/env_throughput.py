@@ -1,12 +1,16 @@
 """Simulator throughput on one CPU core: agent-steps/s of VecQuadEnv, and numba compile times.
 
     python -m benchmarks.env_throughput [--agents 1,8,32,128] [--drones 8192] [--dtypes float64,float32]
-                                        [--repeats 10] [--steps 40] [--core N] [--no-compile] [--no-append]
+                                        [--scenarios static_same_goal,mix] [--repeats 10] [--steps 40]
+                                        [--core N] [--no-compile] [--no-append]
 
-For each swarm size N (K = 6 "full" neighbours, all noise on, scenario static_same_goal) the process is
+For each scenario and swarm size N (K = 6 "full" neighbours, all noise on) the process is
 pinned to one core (``os.sched_setaffinity``, what ``taskset -c`` does) and E = drones // N swarms are
 stepped with uniform random actions in [-1, 1], after a JIT warm-up. A figure is the best of
 ``--repeats`` windows of ``--steps`` control steps (the machine may be shared; the median is shown too).
+Scenario logic: for each dynamic scenario at N = 8, the goal update alone (``scenario.update`` on a copy of the
+goals, timers and random streams) is timed the same way and reported as a share of the whole step (target
+<= 20%); resets are inside the step figure.
 Compile time: a fresh Python process imports quad_env, builds an env and takes one step, first with an
 empty numba cache (``NUMBA_CACHE_DIR`` = a new temp dir: cold) and then again with the cache it filled
 (warm). Figures are appended to benchmarks/RESULTS.md with the command, commit and machine.
@@ -40,11 +44,12 @@ print(t1 - t0, t2 - t1)
 """
 
 
-def measure(num_agents: int, num_drones: int, dtype: str, steps: int, repeats: int) -> dict:
+def measure(num_agents: int, num_drones: int, dtype: str, steps: int, repeats: int,
+            scenario: str = "static_same_goal") -> dict:
     from quad_env import EnvConfig, VecQuadEnv
 
     num_envs = max(1, num_drones // num_agents)
-    cfg = EnvConfig(num_agents=num_agents, num_neighbors=6, sim_dtype=dtype)
+    cfg = EnvConfig(num_agents=num_agents, num_neighbors=6, sim_dtype=dtype, scenario=scenario)
     env = VecQuadEnv(cfg, num_envs=num_envs, seed=0)
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (16, env.num_drones, 4)).astype(np.float32)
@@ -57,8 +62,20 @@ def measure(num_agents: int, num_drones: int, dtype: str, steps: int, repeats: i
             env.step(actions[t % 16])
         rates.append(steps * env.num_drones / (time.perf_counter() - start))
     airborne = float((env.get_state().pos[:, 2] > cfg.physics.floor_z + 1e-9).mean())
-    return dict(N=num_agents, E=num_envs, M=env.num_drones, dtype=dtype, best=max(rates),
-                median=float(np.median(rates)), airborne=airborne)
+    row = dict(N=num_agents, E=num_envs, M=env.num_drones, dtype=dtype, best=max(rates),
+               median=float(np.median(rates)), airborne=airborne, scenario=scenario, share=None)
+    if env.scenario.dynamic:  # the goal update alone, on copies (the env's own state is left as it is)
+        sc, goal, count = env.scenario, env._goal.copy(), env._step_count.copy()
+        rng = env._rng.copy()
+        update_rates = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            for t in range(steps):
+                sc.update(goal, count, rng)
+                count += 1
+            update_rates.append(steps * env.num_drones / (time.perf_counter() - start))
+        row["share"] = max(rates) / max(update_rates)  # best update time per step / best step time
+    return row
 
 
 def compile_times(dtype: str, core: int) -> dict:
@@ -85,6 +102,7 @@ def main(argv=None) -> None:
     parser.add_argument("--agents", default="1,8,32,128", help="comma-separated swarm sizes N")
     parser.add_argument("--drones", type=int, default=8192, help="drones per step call (E = drones // N)")
     parser.add_argument("--dtypes", default="float64,float32", help="simulator state dtypes to measure")
+    parser.add_argument("--scenarios", default="static_same_goal,mix", help="comma-separated scenario names")
     parser.add_argument("--steps", type=int, default=40, help="control steps per timed window")
     parser.add_argument("--repeats", type=int, default=10, help="timed windows per figure (best is kept)")
     parser.add_argument("--core", type=int, default=None, help="CPU core to pin to (default: the first one)")
@@ -98,18 +116,26 @@ def main(argv=None) -> None:
     load_before = load_average()
 
     compile_rows = {d: compile_times(d, core) for d in dtypes} if not args.no_compile else {}
-    rows = [measure(n, args.drones, d, args.steps, args.repeats) for d in dtypes for n in agents]
+    scenarios = [s for s in args.scenarios.split(",") if s]
+    rows = [measure(n, args.drones, d, args.steps, args.repeats, sc) for sc in scenarios for d in dtypes
+            for n in agents]
 
-    lines = ["| N | E | dtype | agent-steps/s (best) | median | ns / agent-step | airborne at end | target |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| scenario | N | E | dtype | agent-steps/s (best) | median | ns / agent-step | airborne at end | "
+             "goal update / step | target |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     verdicts = []
     for r in rows:
         target = TARGETS.get(r["N"])
         tgt = "" if target is None else f">= {target:,}: {'met' if r['best'] >= target else 'NOT met'}"
-        lines.append(f"| {r['N']} | {r['E']} | {r['dtype']} | {r['best']:,.0f} | {r['median']:,.0f} "
-                     f"| {1e9 / r['best']:.0f} | {r['airborne']:.0%} | {tgt} |")
+        share = "" if r["share"] is None else f"{r['share']:.1%}"
+        if r["share"] is not None and r["N"] == 8:
+            verdicts.append(f"{r['scenario']} goal update at N = 8 ({r['dtype']}): {r['share']:.1%} of the step vs <= 20% "
+                            f"-> {'met' if r['share'] <= 0.2 else 'NOT met'}")
+        lines.append(f"| {r['scenario']} | {r['N']} | {r['E']} | {r['dtype']} | {r['best']:,.0f} | {r['median']:,.0f} "
+                     f"| {1e9 / r['best']:.0f} | {r['airborne']:.0%} | {share} | {tgt} |")
         if target is not None and r["dtype"] == dtypes[0]:
-            verdicts.append(f"N = {r['N']}: {r['best']:,.0f} vs {target:,} -> {'met' if r['best'] >= target else 'NOT met'}")
+            verdicts.append(f"{r['scenario']} N = {r['N']}: {r['best']:,.0f} vs {target:,} -> "
+                            f"{'met' if r['best'] >= target else 'NOT met'}")
     compile_lines = []
     for d, c in compile_rows.items():
         compile_lines.append(f"- compile ({d} state): cold cache {c['cold'][1]:.1f} s (build env + first step; "
@@ -122,7 +148,7 @@ def main(argv=None) -> None:
         f"- command: `{command.strip()}`",
         f"- commit: {commit(['quad_env', 'benchmarks/env_throughput.py'])}",
         f"- machine: {machine(numba_versions())}; pinned to core {core}; load average before: {load_before}",
-        f"- K = 6 full neighbours, static_same_goal, thrust + sensor noise on, downwash on, uniform random actions, "
+        f"- K = 6 full neighbours, scenarios {', '.join(scenarios)}, thrust + sensor noise on, downwash on, uniform random actions, "
         f"{args.drones} drones per step call; best (and median) of {args.repeats} windows of {args.steps} steps "
         f"after a 5-step warm-up; 'airborne' = share of drones off the floor at the end (random actions mostly "
         f"crash them)",

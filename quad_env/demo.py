@@ -39,7 +39,10 @@ def fly(cfg: EnvConfig, steps: int, seed: int, policy: str):
     return np.stack(track), env.get_state().goal, total
 
 
-def plot(track: np.ndarray, goals: np.ndarray, path: str, title: str) -> None:
+def plot(track: np.ndarray, goals: np.ndarray, path: str, title: str, goal_track: Optional[np.ndarray] = None,
+         collisions: Optional[np.ndarray] = None) -> None:
+    """3-D trajectory PNG. track [T+1, N, 3]; goals [N, 3] (at the end); goal_track [T+1, N, 3] draws the
+    goals' paths (moving goals); collisions [C, 3] marks where drones collided."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -50,8 +53,15 @@ def plot(track: np.ndarray, goals: np.ndarray, path: str, title: str) -> None:
     for a in range(track.shape[1]):
         ax.plot(track[:, a, 0], track[:, a, 1], track[:, a, 2], color=colors[a], lw=1)
         ax.scatter(*track[0, a], color=colors[a], marker="o", s=12)
+    if goal_track is not None and np.ptp(goal_track, axis=0).max() > 0:
+        for a in range(goal_track.shape[1]):
+            ax.plot(goal_track[:, a, 0], goal_track[:, a, 1], goal_track[:, a, 2], color="red", lw=0.6, ls="--",
+                    alpha=0.5, label="goal paths" if a == 0 else None)
     ax.scatter(goals[:, 0], goals[:, 1], goals[:, 2], color="red", marker="*", s=60, label="goals")
     ax.scatter([], [], color="gray", marker="o", s=12, label="start")
+    if collisions is not None and len(collisions):
+        ax.scatter(collisions[:, 0], collisions[:, 1], collisions[:, 2], color="black", marker="x", s=50,
+                   label=f"collisions ({len(collisions)})")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")

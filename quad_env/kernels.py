@@ -33,8 +33,8 @@ from quad_env.params import (
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
-    I_FULL_NB, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS, I_TAIL_STEPS,
-    I_THRUST_NOISE,
+    I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
+    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE,
 )
 from quad_env.rng import normal_from, normal_pair, uniform
 
@@ -46,7 +46,22 @@ ACC_ROOM = 7  # new floor / wall / ceiling contacts (drones)
 ACC_DIST_TAIL = 8  # sum over the last-5-s steps of the mean distance to goal
 ACC_TAIL_STEPS = 9  # number of steps in that sum
 ACC_DIST_FINAL = 10  # mean distance to goal after the latest step
-NUM_ACC = 11
+ACC_DIST_TAIL1 = 11  # sum over the last-1-s steps of the mean distance to goal
+ACC_TAIL1_STEPS = 12
+ACC_DIST_TAIL3 = 13  # sum over the last-3-s steps of the mean distance to goal
+ACC_TAIL3_STEPS = 14
+ACC_COLL_GRACE = 15  # new drone-drone contacts (pairs) after the grace period
+ACC_ROOM_GRACE = 16  # new room contacts (drones) after the grace period
+NUM_ACC = 17
+
+# Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success and IColR metrics.
+SUCCESS_WINDOW = 5  # a drone has reached its goal when its mean distance over this many steps ...
+SUCCESS_RADIUS = 0.5  # ... is below this (m)
+AG_RING = 0  # SUCCESS_WINDOW columns: the latest distances to goal (ring buffer)
+AG_SINCE_JUMP = 5  # steps recorded since the last goal jump (or the episode start)
+AG_REACHED = 6  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
+AG_COLL_GRACE = 7  # new drone-drone contacts of this drone after the grace period
+NUM_AGENT_ACC = 8
 
 
 # ====================================================================== single drone
@@ -507,15 +522,58 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
     return dist_sum / n_agents
 
 
+# ====================================================================== episode metrics
+@njit(cache=True)
+def agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agents):
+    """Per-drone success bookkeeping of swarm ``e`` after a step: the distance to goal enters a ring of the
+    last SUCCESS_WINDOW steps; once the ring holds that many steps since the last goal jump and their mean
+    is below SUCCESS_RADIUS, the drone has reached its goal. A jump (``jumped[e]``) empties the rings and
+    clears "reached". New drone-drone contacts after the grace period are counted per drone."""
+    base = e * n_agents
+    if jumped[e] != 0:
+        for a in range(n_agents):
+            agent_acc[base + a, AG_SINCE_JUMP] = 0.0
+            agent_acc[base + a, AG_REACHED] = 0.0
+        jumped[e] = 0
+    for a in range(n_agents):
+        i = base + a
+        dx, dy, dz = pos[i, 0] - goal[i, 0], pos[i, 1] - goal[i, 1], pos[i, 2] - goal[i, 2]
+        since = int(agent_acc[i, AG_SINCE_JUMP])
+        agent_acc[i, AG_RING + since % SUCCESS_WINDOW] = np.sqrt(dx * dx + dy * dy + dz * dz)
+        since += 1
+        agent_acc[i, AG_SINCE_JUMP] = since
+        if since >= SUCCESS_WINDOW:
+            total = 0.0
+            for k in range(SUCCESS_WINDOW):
+                total += agent_acc[i, AG_RING + k]
+            if total < SUCCESS_RADIUS * SUCCESS_WINDOW:
+                agent_acc[i, AG_REACHED] = 1.0
+        if after_grace:
+            agent_acc[i, AG_COLL_GRACE] += new_coll[a]
+
+
 # ====================================================================== whole-batch kernels
 @njit(cache=True)
 def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng, step_count,
                 fp, ip, obs, rew, terms, done, diverged, acc):
+    """``step_with_metrics_kernel`` without the per-drone metrics (physics tests, model validation)."""
+    jumped = np.zeros(step_count.shape[0], np.uint8)
+    agent_acc = np.zeros((pos.shape[0], NUM_AGENT_ACC), np.float64)
+    return step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
+                                    step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc)
+
+
+@njit(cache=True)
+def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
+                             step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc):
     """One control step of all E swarms (see the module docstring). Returns the number of swarms done.
 
     ``done[e]`` = the episode of swarm e reached its length (truncation). ``diverged[e]`` = a drone's
     state became non-finite: that swarm's observation rows keep the previous step's values, its reward
     rows are 0, and it is reported done; the caller decides (raise or reset).
+    Episode metrics go to ``acc [E, NUM_ACC]`` and ``agent_acc [M, NUM_AGENT_ACC]``; ``jumped[e] = 1``
+    (set by the scenario: the goals jumped before this step) restarts the swarm's success windows and is
+    cleared here.
     """
     n_agents = ip[I_N]
     num_envs = step_count.shape[0]
@@ -531,12 +589,15 @@ def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_con
         base = e * n_agents
         step_count[e] += 1
         reortho = step_count[e] % ip[I_REORTHO] == 0
+        after_grace = step_count[e] > ip[I_GRACE_STEPS]
         bad = False
         for a in range(n_agents):
             i = base + a
             touched = advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip)
             if touched != 0 and room_contact[i] == 0:
                 acc[e, ACC_ROOM] += 1.0
+                if after_grace:
+                    acc[e, ACC_ROOM_GRACE] += 1.0
             room_contact[i] = touched
             if reortho:
                 reorthonormalise(i, rot)
@@ -553,8 +614,8 @@ def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_con
             n_done += 1
             continue
         gather_positions(e, pos, n_agents, px, py, pz)
-        acc[e, ACC_COLLISIONS] += pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox,
-                                               px, py, pz, row)
+        n_new = pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, px, py, pz, row)
+        acc[e, ACC_COLLISIONS] += n_new
         mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py, pz, row, rng,
                                   fp, ip, obs, rew, terms, nb_idx, nb_d2, True)
         # ---- episode statistics
@@ -567,6 +628,15 @@ def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_con
         if step_count[e] > ip[I_EP_STEPS] - ip[I_TAIL_STEPS]:
             acc[e, ACC_DIST_TAIL] += mean_dist
             acc[e, ACC_TAIL_STEPS] += 1.0
+        if step_count[e] > ip[I_EP_STEPS] - ip[I_TAIL3_STEPS]:
+            acc[e, ACC_DIST_TAIL3] += mean_dist
+            acc[e, ACC_TAIL3_STEPS] += 1.0
+        if step_count[e] > ip[I_EP_STEPS] - ip[I_TAIL1_STEPS]:
+            acc[e, ACC_DIST_TAIL1] += mean_dist
+            acc[e, ACC_TAIL1_STEPS] += 1.0
+        if after_grace:
+            acc[e, ACC_COLL_GRACE] += n_new
+        agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agents)
         if done[e]:
             n_done += 1
     return n_done

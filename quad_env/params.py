@@ -61,7 +61,12 @@ I_REORTHO = 9  # re-orthonormalise every this many control steps
 I_TAIL_STEPS = 10  # control steps in the last 5 s (episode stat dist_last_5s)
 I_OBS_DIM = 11
 I_NB_DIM = 12  # entries per neighbour block
-NUM_I = 13
+I_TAIL1_STEPS = 13  # control steps in the last 1 s (dist_last_1s)
+I_TAIL3_STEPS = 14  # control steps in the last 3 s (dist_last_3s)
+I_GRACE_STEPS = 15  # collisions in the first this many control steps (1.5 s) do not count for the metrics
+NUM_I = 16
+
+METRIC_GRACE_S = 1.5  # grace period of the collision metrics, s
 
 # Reward terms, in the order of the kernel's ``terms`` rows.
 REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action")
@@ -123,4 +128,7 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     i[I_TAIL_STEPS] = min(cfg.episode_steps, int(round(5.0 / cfg.control_dt)))
     i[I_OBS_DIM] = obs_dim
     i[I_NB_DIM] = 21 if cfg.neighbor_obs == "full" else 6
+    i[I_TAIL1_STEPS] = min(cfg.episode_steps, int(round(1.0 / cfg.control_dt)))
+    i[I_TAIL3_STEPS] = min(cfg.episode_steps, int(round(3.0 / cfg.control_dt)))
+    i[I_GRACE_STEPS] = int(round(METRIC_GRACE_S / cfg.control_dt))
     return f, i

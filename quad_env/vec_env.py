@@ -33,8 +33,10 @@ import numpy as np
 
 from quad_env.config import EnvConfig
 from quad_env.kernels import (
-    ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_RETURN, ACC_ROOM, ACC_TAIL_STEPS, ACC_TERMS, NUM_ACC,
-    all_finite, observe_kernel, refresh_contacts_kernel, spawn_kernel, step_kernel,
+    ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_RETURN,
+    ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS, ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE,
+    AG_REACHED, NUM_ACC, NUM_AGENT_ACC, all_finite, observe_kernel, refresh_contacts_kernel, spawn_kernel,
+    step_with_metrics_kernel,
 )
 from quad_env.obs_layout import ObsLayout
 from quad_env.params import I_EP_STEPS, REWARD_TERMS, pack_params
@@ -98,6 +100,7 @@ class VecQuadEnv:
         self._room_contact = np.zeros(M, np.uint8)
         self._step_count = np.zeros(E, np.int64)
         self._acc = np.zeros((E, NUM_ACC), np.float64)
+        self._agent_acc = np.zeros((M, NUM_AGENT_ACC), np.float64)
         self._rng = seed_streams(seed, E)
         self._fp, self._ip = pack_params(cfg, D, noise=True)
         self._fp_quiet, self._ip_quiet = pack_params(cfg, D, noise=False)
@@ -159,10 +162,11 @@ class VecQuadEnv:
         if self.scenario.dynamic:
             self.scenario.update(self._goal, self._step_count, self._rng)
         self._done[:] = False
-        n_done = step_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
-                             self._goal, self._contact, self._room_contact, self._rng, self._step_count,
-                             self._fp, self._ip, self._obs, self._rew, self._terms, self._done, self._diverged,
-                             self._acc)
+        n_done = step_with_metrics_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
+                                          self._goal, self._contact, self._room_contact, self._rng,
+                                          self._step_count, self._fp, self._ip, self._obs, self._rew, self._terms,
+                                          self._done, self._diverged, self._acc, self.scenario.jumped,
+                                          self._agent_acc)
         if n_done:
             self._finish_episodes()
         else:
@@ -173,11 +177,16 @@ class VecQuadEnv:
         """One dict per swarm episode finished since the last call (then forgotten).
 
         Keys: ``scenario``; ``return`` (episode reward, mean per agent); ``length`` (control steps);
-        ``dist_final`` (mean distance to goal after the last step); ``dist_last_5s`` (mean over the last
-        5 s, or the whole episode if shorter); ``collisions`` (new drone-drone contacts, pairs);
-        ``room_contacts`` (new floor/wall/ceiling contacts, drones); ``rew_<term>`` (per-term episode
-        reward, mean per agent: they sum to ``return``); ``diverged`` (the episode ended on a
-        non-finite state).
+        ``dist_final`` (mean distance to goal after the last step); ``dist_last_5s``, ``dist_last_3s``,
+        ``dist_last_1s`` (mean over the last 5 / 3 / 1 s, or the whole episode if shorter);
+        ``collisions`` (new drone-drone contacts, pairs); ``room_contacts`` (new floor/wall/ceiling
+        contacts, drones); ``collisions_after_grace``, ``room_contacts_after_grace`` (the same, counted
+        only after the first 1.5 s); ``inter_collision_rate`` (share of drones with at least one new
+        drone-drone contact after the grace period); ``success_rate`` (share of drones that reached their
+        goal -- mean distance over 5 consecutive steps < 0.5 m at some step after the last goal jump --
+        and had no drone-drone contact after the grace period); ``agent_success``, ``agent_collided``
+        (bool [N]: the same per drone); ``rew_<term>`` (per-term episode reward, mean per agent: they sum
+        to ``return``); ``diverged`` (the episode ended on a non-finite state).
         """
         out, self._episode_stats = self._episode_stats, []
         return out
@@ -237,18 +246,19 @@ class VecQuadEnv:
 
         With ``noise=False`` there is no thrust noise, no sensor noise and no random collision kick; the
         step is deterministic. No episode ends and nothing auto-resets (the episode clock still advances,
-        which sets the re-orthonormalisation schedule). Observation, reward and ``reward_terms`` buffers
+        which sets the re-orthonormalisation schedule, and the episode metrics accumulate: see
+        ``episode_stats``; the last-N-seconds distances never count, the episode never nearing its end). Observation, reward and ``reward_terms`` buffers
         are updated as in ``step``.
         """
         act = self._check_actions(actions)
         fp, ip = (self._fp, self._ip.copy()) if noise else (self._fp_quiet, self._ip_quiet)
         ip[I_EP_STEPS] = _NEVER
-        scratch_acc = np.zeros_like(self._acc)
         done = np.zeros(self.num_envs, bool)
         diverged = np.zeros(self.num_envs, bool)
-        step_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou, self._goal,
-                    self._contact, self._room_contact, self._rng, self._step_count, fp, ip, self._obs,
-                    self._rew, self._terms, done, diverged, scratch_acc)
+        step_with_metrics_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
+                                 self._goal, self._contact, self._room_contact, self._rng, self._step_count, fp,
+                                 ip, self._obs, self._rew, self._terms, done, diverged, self._acc,
+                                 self.scenario.jumped, self._agent_acc)
         if diverged.any():
             raise FloatingPointError(f"simulate: non-finite state in swarms {np.flatnonzero(diverged).tolist()}")
         return self.get_state()
@@ -273,6 +283,8 @@ class VecQuadEnv:
         refresh_contacts_kernel(selected, self._pos, self._contact, self._fp, self._ip)
         self._step_count[selected] = 0
         self._acc[selected] = 0.0
+        self._agent_acc[np.repeat(selected, self.num_agents)] = 0.0
+        self.scenario.jumped[selected] = 0
         self._diverged[selected] = False
         self._needs_reset[selected] = False
         observe_kernel(selected, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
@@ -294,23 +306,35 @@ class VecQuadEnv:
                           RuntimeWarning, stacklevel=3)
         self._final_obs[rows] = self._obs[rows]
         for e in np.flatnonzero(done):
-            self._episode_stats.append(self._stats_of(int(e)))
+            self._episode_stats.append(self.episode_stats(int(e)))
         if self.auto_reset:
             self._reset_swarms(done.copy())
         else:
             self._needs_reset |= done
 
-    def _stats_of(self, e: int) -> dict:
+    def episode_stats(self, e: int) -> dict:
+        """Stats of swarm ``e``'s episode so far (the dict ``pop_episode_stats`` returns at its end)."""
         acc, N = self._acc[e], self.num_agents
-        tail_steps = acc[ACC_TAIL_STEPS]
+        agents = self._agent_acc[e * N:(e + 1) * N]
+        collided = agents[:, AG_COLL_GRACE] > 0  # [N]
+        success = (agents[:, AG_REACHED] > 0) & ~collided  # [N]
+        mean_of = lambda total, steps: total / steps if steps > 0 else float("nan")  # noqa: E731
         stats = {
             "scenario": self.scenario.episode_name(e),
             "return": acc[ACC_RETURN] / N,
             "length": int(self._step_count[e]),
             "dist_final": acc[ACC_DIST_FINAL],
-            "dist_last_5s": acc[ACC_DIST_TAIL] / tail_steps if tail_steps > 0 else float("nan"),
+            "dist_last_5s": mean_of(acc[ACC_DIST_TAIL], acc[ACC_TAIL_STEPS]),
+            "dist_last_3s": mean_of(acc[ACC_DIST_TAIL3], acc[ACC_TAIL3_STEPS]),
+            "dist_last_1s": mean_of(acc[ACC_DIST_TAIL1], acc[ACC_TAIL1_STEPS]),
             "collisions": int(acc[ACC_COLLISIONS]),
             "room_contacts": int(acc[ACC_ROOM]),
+            "collisions_after_grace": int(acc[ACC_COLL_GRACE]),
+            "room_contacts_after_grace": int(acc[ACC_ROOM_GRACE]),
+            "inter_collision_rate": float(collided.mean()),
+            "success_rate": float(success.mean()),
+            "agent_success": success.copy(),
+            "agent_collided": collided.copy(),
             "diverged": bool(self._diverged[e]),
         }
         for k, name in enumerate(REWARD_TERMS):

@@ -6,9 +6,13 @@ from quad_env import SCENARIOS, EnvConfig, VecQuadEnv, make_scenario, register_s
 from quad_env.scenarios import Scenario, formation_offsets
 
 
+ALL = ("static_same_goal", "static_diff_goal", "dynamic_same_goal", "dynamic_diff_goal", "ep_lissajous3D",
+       "ep_rand_bezier", "swarm_vs_swarm", "swap_goals", "dynamic_formations", "mix")
+
+
 def test_registry_lists_the_scenarios_and_rejects_unknown_names():
-    assert SCENARIOS == ("static_same_goal", "static_diff_goal")
-    with pytest.raises(ValueError, match=r"unknown scenario 'swarm_vs'; valid: \['static_diff_goal', 'static_same_goal'\]"):
+    assert SCENARIOS == ALL
+    with pytest.raises(ValueError, match=r"unknown scenario 'swarm_vs'; valid: \['dynamic_diff_goal', .*'swarm_vs_swarm'\]"):
         make_scenario("swarm_vs", EnvConfig())
     with pytest.raises(ValueError, match="already registered"):
         @register_scenario
