@@ -56,7 +56,7 @@ class ModelConfig:
     from every training batch; rollout workers receive them with the weights."""
     init_action_mean: float = 0.0
     """Initial mean action (the actor's output bias). 2 / thrust_to_weight - 1 (0.053 for the Crazyflie)
-    is the hover command: the untrained policy then hovers on average instead of sinking."""
+    is the hover command: the untrained policy then commands hover thrust on average (0 gives 0.95 g)."""
 
 
 @dataclass
@@ -175,9 +175,10 @@ class TrainConfig:
 # configs/quickstart.yaml states the same values; a test keeps the two equal.
 QUICKSTART: Dict[str, Any] = {
     "env": {"num_agents": 8, "scenario": "static_same_goal"},
-    "model": {"encoder": "deepsets", "encoder_kwargs": {"hidden": 64, "out_dim": 64}, "head_hidden": 64},
+    "model": {"encoder": "deepsets", "encoder_kwargs": {"hidden": 64, "out_dim": 64}, "head_hidden": 64,
+              "normalize_obs": True, "init_action_mean": 0.053},
     "algo": {"batch_size": 2048, "num_epochs": 2, "lr": 3e-4},
-    "runner": {"num_workers": 0, "envs_per_worker": 2, "total_agent_steps": 2_000_000,
+    "runner": {"num_workers": 0, "envs_per_worker": 16, "total_agent_steps": 10_000_000, "time_limit_s": 480.0,
                "checkpoint_every_s": 120.0, "name": "quickstart"},
 }
 
