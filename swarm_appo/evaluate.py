@@ -45,7 +45,9 @@ def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: in
 
 
 def summarize(episodes: List[Dict], prefix: str) -> Dict[str, float]:
-    keys = {"return": "reward", "dist_last_5s": "dist", "dist_final": "dist_final", "collisions": "collisions"}
+    keys = {"return": "reward", "dist_last_5s": "dist", "dist_final": "dist_final",
+            "collisions_after_grace": "collisions", "success_rate": "success_rate",
+            "inter_collision_rate": "inter_collision_rate"}
     return {f"{prefix}/{name}": float(np.mean([e[k] for e in episodes])) for k, name in keys.items()
             if episodes and k in episodes[0]}
 

@@ -84,6 +84,12 @@ def max_fragments_in_flight(cfg: TrainConfig, num_workers: int) -> int:
     return cfg.runner.max_fragments_in_flight or 2 * num_workers  # 0 = auto: one queued behind each running
 
 
+# swarm/<name> <- episode-stats key (the paper's Table 1 columns; definitions in the README)
+SWARM_METRICS = (("dist", "dist_last_5s"), ("dist_final", "dist_final"), ("collisions", "collisions_after_grace"),
+                 ("success_rate", "success_rate"), ("inter_collision_rate", "inter_collision_rate"),
+                 ("room_contacts", "room_contacts_after_grace"))
+
+
 def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
     """charts/ and swarm/ records from the swarm episodes that ended since the last log."""
     if not episodes:
@@ -94,7 +100,7 @@ def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
     by_scenario: Dict[str, List[Dict[str, Any]]] = defaultdict(list)
     for e in episodes:
         by_scenario[e.get("scenario", "unknown")].append(e)
-    for key, src in (("dist", "dist_last_5s"), ("dist_final", "dist_final"), ("collisions", "collisions")):
+    for key, src in SWARM_METRICS:
         vals = [e[src] for e in episodes if src in e]
         if vals:
             out[f"swarm/{key}"] = float(np.mean(vals))
