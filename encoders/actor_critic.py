@@ -84,6 +84,10 @@ class ActorCritic(nn.Module):
         encoder = self.actor_encoder if self.critic_encoder is None else self.critic_encoder
         return self.critic_head(encoder(self._normalize(obs))).squeeze(-1)
 
+    def policy(self, obs: torch.Tensor):
+        """``(mean [B, A], log_std [A])`` without the critic: what acting needs."""
+        return self.actor_head(self.actor_encoder(self._normalize(obs))), self.log_std
+
     def forward(self, obs: torch.Tensor):
         """``(mean [B, A], log_std [A], value [B])``."""
         actor, critic = self._features(obs)

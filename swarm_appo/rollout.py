@@ -8,7 +8,8 @@ Fragment layout (time-major, B = E * N drone trajectories, T = ``algo.rollout``)
     obs            float32 [T, B, D]   observation the action was taken from
     actions        float32 [T, B, A]   unclipped Gaussian sample (the env clips to [-1, 1])
     log_probs      float32 [T, B]      behaviour log-prob of ``actions``
-    values         float32 [T, B]      behaviour-time value estimate (for optional value clipping)
+    values         float32 [T, B]      behaviour-time value estimate (for value clipping; zeros when
+                                       ``store_values`` is off, which skips the critic while acting)
     rewards        float32 [T, B]
     terminated     bool    [T, B]      true end of an episode (zero discount); never set by this env
     truncated      bool    [T, B]      time limit: bootstrap from ``final_obs``
@@ -40,10 +41,11 @@ class RolloutWorker:
     """Owns ``num_envs`` swarms and a policy copy; ``collect()`` returns one fragment."""
 
     def __init__(self, env_cfg: EnvConfig, model_factory, num_envs: int, rollout: int, seed: int,
-                 worker_id: int = 0):
+                 worker_id: int = 0, store_values: bool = False):
         torch.set_num_threads(1)  # one core per worker: batched inference is small, threads only contend
         self.worker_id = worker_id
         self.rollout = rollout
+        self.store_values = store_values
         self.env = VecQuadEnv(env_cfg, num_envs=num_envs, seed=seed)
         self.generator = torch.Generator().manual_seed(seed)
         self.model = model_factory()
@@ -112,7 +114,10 @@ class RolloutWorker:
         )
 
     def _sample(self, obs: torch.Tensor) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        mean, log_std, value = self.model(obs)
+        if self.store_values:
+            mean, log_std, value = self.model(obs)
+        else:  # the critic is not needed to act: skip it (about half the inference cost)
+            (mean, log_std), value = self.model.policy(obs), torch.zeros(obs.shape[0])
         std = log_std.exp()
         noise = torch.randn(mean.shape, generator=self.generator)
         actions = mean + std * noise

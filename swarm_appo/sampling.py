@@ -34,9 +34,10 @@ class SerialSampler:
     """Round-robin over in-process workers; every fragment uses the newest weights (lag 0)."""
 
     def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
-                 rollout: int, seed: int):
+                 rollout: int, seed: int, store_values: bool = False):
         self.workers = [RolloutWorker(env_cfg, model_factory, envs_per_worker, rollout,
-                                      worker_seed(seed, i), worker_id=i) for i in range(num_workers)]
+                                      worker_seed(seed, i), worker_id=i, store_values=store_values)
+                        for i in range(num_workers)]
         self._next = 0
         self._weights: Optional[Weights] = None
         self.restarts = 0
@@ -85,12 +86,14 @@ class RaySampler:
     """Rollout workers as Ray actors streaming fragments through the object store."""
 
     def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
-                 rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0):
+                 rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0,
+                 store_values: bool = False):
         if max_in_flight < num_workers:
             raise ValueError(f"runner.max_fragments_in_flight ({max_in_flight}) must be >= the number of "
                              f"rollout workers ({num_workers}), or some workers would never run")
         self._args = (env_cfg, model_factory, envs_per_worker, rollout)
         self._seed = seed
+        self._store_values = store_values
         self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0)(RayRolloutWorker)
         self._store = WeightsStore.remote()
         self.workers: List[Any] = []
@@ -106,7 +109,8 @@ class RaySampler:
     def _spawn(self, index: int, incarnation: int):
         env_cfg, model_factory, envs_per_worker, rollout = self._args
         return self._remote_cls.remote(self._store, env_cfg, model_factory, envs_per_worker, rollout,
-                                       worker_seed(self._seed, index, incarnation), index)
+                                       worker_seed(self._seed, index, incarnation), index,
+                                       store_values=self._store_values)
 
     def publish(self, version: int, state_dict: Dict[str, torch.Tensor]) -> None:
         ref = ray.put((version, state_dict))  # one object per version, shared by all workers

@@ -156,13 +156,15 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                            resume_step=agent_steps if state else None)
     num_workers = num_rollout_workers(cfg)
     sampler_seed = cfg.runner.seed + 7919 * learner.version  # a resumed run does not replay old episodes
+    store_values = cfg.algo.value_clip is not None  # behaviour values are only needed for value clipping
     if cfg.runner.serial:
         sampler = SerialSampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
-                                sampler_seed)
+                                sampler_seed, store_values=store_values)
     else:
         init_local_ray()
         sampler = RaySampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
-                             sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers))
+                             sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers),
+                             store_values=store_values)
     sampler.publish(*learner.cpu_weights())
 
     bar = None

@@ -30,6 +30,8 @@ def test_shapes(name):
     log_prob2, entropy, value3 = model.evaluate(obs, actions)
     assert log_prob2.shape == entropy.shape == value3.shape == (8,)
     assert torch.allclose(log_prob, log_prob2) and torch.equal(model.get_value(obs), value)
+    mean_p, log_std_p = model.policy(obs)  # the actor alone gives the same distribution
+    assert torch.equal(mean_p, mean) and torch.equal(log_std_p, log_std)
 
 
 def test_log_prob_and_entropy_match_numpy():
