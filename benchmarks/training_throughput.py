@@ -6,7 +6,7 @@
 For each encoder and epoch count it trains with ``configs/paper.yaml`` (the paper's model sizes and
 hyperparameters) for ``--seconds`` and reports, after a warm-up, agent-steps/s, mean/max policy lag and
 the share of time per phase. The roofline is the matmul bound: FLOPs per agent step (one inference
-forward of actor and critic + ``epochs`` x forward-and-backward of the training loss, counted by
+forward of the actor + ``epochs`` x forward-and-backward of the training loss, counted by
 torch's FlopCounterMode) against the float32 matmul rate of the cores used (one-thread sgemm rate x
 cores, measured in the same run). Figures are appended to benchmarks/RESULTS.md.
 """
@@ -34,13 +34,13 @@ DEFAULT_ENCODERS = ("deepsets", "kattention", "se3_kattention", "se3_graphormer"
 
 
 def flops_per_agent_step(cfg, batch: int = 512) -> dict:
-    """Counted matmul FLOPs per agent step: inference (actor + critic forward) and training per epoch."""
+    """Counted matmul FLOPs per agent step: inference (actor forward) and training per epoch."""
     layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
     model = model_factory(layout, cfg.model)()
     obs = torch.as_tensor(random_obs(layout, batch, np.random.default_rng(0)), dtype=torch.float32)
     with FlopCounterMode(display=False) as fc:
-        with torch.no_grad():
-            model(obs)
+        with torch.no_grad():  # what a rollout worker runs per step: the actor, plus the critic for value clipping
+            model(obs) if cfg.algo.value_clip is not None else model.policy(obs)
     inference = fc.get_total_flops() / batch
     actions = torch.randn(batch, 4)
     with FlopCounterMode(display=False) as fc:
@@ -125,7 +125,7 @@ def main(argv=None) -> None:
         f"- config: {Path(args.config).name} (paper sizes), N = {args.num_agents}, {args.seconds:.0f} s per row, "
         f"figures after a 30% warm-up",
         f"- roofline: sgemm {per_core / 1e9:.1f} GFLOP/s per core x {cores} cores; FLOPs = inference forward "
-        f"(actor + critic) + epochs x training forward+backward, counted by FlopCounterMode (matmuls only)",
+        f"(actor) + epochs x training forward+backward (actor + critic), counted by FlopCounterMode (matmuls only)",
         "",
         header, *lines,
     ])
