@@ -59,9 +59,11 @@ def measure_run(run_dir: Path, warmup_fraction: float = 0.3) -> dict:
         raise RuntimeError(f"only {len(records)} learner iterations in {run_dir}: raise --seconds")
     t0, t1 = records[0]["charts/elapsed_s"], records[-1]["charts/elapsed_s"]
     steady = [r for r in records if r["charts/elapsed_s"] >= t0 + warmup_fraction * (t1 - t0)]
+    if len(steady) < 2:
+        steady = records[-2:]
     first, last = steady[0], steady[-1]
     sps = (last["global_step"] - first["global_step"]) / max(last["charts/elapsed_s"] - first["charts/elapsed_s"], 1e-9)
-    mean = lambda key: float(np.mean([r[key] for r in steady[1:]]))  # noqa: E731
+    mean = lambda key: float(np.mean([r[key] for r in steady]))  # noqa: E731
     return {"sps": sps, "lag_mean": mean("lag/mean"), "lag_max": max(r["lag/max"] for r in steady),
             "learner_share": mean("perf/learner_share"), "transfer_share": mean("perf/transfer_share"),
             "env_share": mean("perf/env_share"), "inference_share": mean("perf/inference_share"),
