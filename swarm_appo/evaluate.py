@@ -5,7 +5,7 @@ to goal against a uniformly random policy's, on the same seeds.
 """
 from __future__ import annotations
 
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List
 
 import numpy as np
 import torch
