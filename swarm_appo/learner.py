@@ -76,7 +76,6 @@ class Learner:
         T, B = t["rewards"].shape
         lag_stats = LagStats()
         lag_stats.update(lag, max_policy_lag=algo.max_policy_lag)
-        trunc_values_at = t["final_idx"]  # [M, 2]
         obs_norm = getattr(self.model, "obs_norm", None)
         if obs_norm is not None:  # statistics move once per batch, before the epochs (Sample Factory style)
             obs_norm.update(t["obs"][valid])
@@ -89,7 +88,7 @@ class Learner:
             perm = torch.randperm(B, generator=self.generator).to(dev)
             for start in range(0, B, cols_per_mb):
                 cols = perm[start:start + cols_per_mb]  # [b]
-                stats = self._minibatch_step(t, cols, valid[:, cols], trunc_values_at)
+                stats = self._minibatch_step(t, cols, valid[:, cols], t["final_idx"])
                 if stats is None:
                     continue
                 for k, v in stats.items():

@@ -205,8 +205,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             t1 = time.perf_counter()
             stats = learner.train(batch)
             timers["learner"] += time.perf_counter() - t1
-            learner_samples = sum(f["num_agent_steps"] for f in batch)
-            timers["learner_samples"] += learner_samples
+            timers["learner_samples"] += sum(f["num_agent_steps"] for f in batch)
             batch = []
             t2 = time.perf_counter()
             sampler.publish(*learner.cpu_weights())
