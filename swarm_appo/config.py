@@ -106,12 +106,20 @@ class AlgoConfig:
 class RunnerConfig:
     """Processes, budgets, devices and the run directory."""
 
+    ray_address: Optional[str] = None
+    """Where the Ray actors run. None: start a local Ray on this machine (all its cores). "auto": join the Ray
+    cluster this process runs in (a job submitted with ``launchers.ray_cluster`` does this); "<host>:<port>":
+    join the cluster whose head (GCS) listens there. On a cluster, ``num_workers=0`` sizes the rollout workers
+    from the CPUs of all nodes (minus one for the learner) and spreads them over the nodes; the learner runs
+    in this (driver) process and uses its GPU if the node has one (``device=auto``). Where each worker ran is
+    written to ``<run dir>/cluster.json``."""
     seed: int = 0
     """One seed drives everything (environments, sampling, initialisation); same seed, same results in serial mode."""
     serial: bool = False
     """Run the rollout workers in-process, one after another (no Ray): for debugging and reproducible tests."""
     num_workers: int = 0
-    """Rollout workers (Ray actors, one core each); 0 = one per core, minus one for the learner (at least 1)."""
+    """Rollout workers (Ray actors, one core each); 0 = one per core, minus one for the learner (at least 1);
+    on a cluster (``ray_address`` set) the cores are the CPUs of all its nodes."""
     envs_per_worker: int = 2
     """E, swarms simulated by each worker; a fragment holds E * env.num_agents trajectories."""
     max_fragments_in_flight: int = 0
@@ -129,7 +137,9 @@ class RunnerConfig:
     keep_checkpoints: int = 3
     """How many of the most recent checkpoints to keep, besides best.pt."""
     run_dir: str = "runs"
-    """Root folder of the run directories."""
+    """Root folder of the run directories. A job submitted with ``launchers.ray_cluster`` resolves a relative one
+    against the home directory of the node that runs the learner (the job's own working directory is a
+    temporary copy that Ray deletes)."""
     name: Optional[str] = None
     """Run directory name under run_dir (also the wandb run name); None = a timestamp."""
     learner_threads: int = 0
@@ -457,6 +467,12 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
         value = getattr(a, name)
         _check(value is None or value > 0, f"algo.{name}", "must be > 0 or null", value)
 
+    if r.ray_address is not None:
+        _check(bool(r.ray_address.strip()), "runner.ray_address",
+               "must be null (a local Ray), 'auto' (join this cluster) or '<host>:<port>'", r.ray_address)
+        if r.serial:
+            raise ConfigError(f"runner.serial=true runs without Ray, but runner.ray_address is {r.ray_address!r}: "
+                              f"set runner.serial=false to run on the cluster, or runner.ray_address=null")
     _check(r.seed >= 0, "runner.seed", "must be >= 0", r.seed)
     _check(r.num_workers >= 0, "runner.num_workers", "must be >= 0 (0 = one per core)", r.num_workers)
     _check(r.envs_per_worker >= 1, "runner.envs_per_worker", "must be >= 1", r.envs_per_worker)

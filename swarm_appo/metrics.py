@@ -80,6 +80,14 @@ METRICS: Dict[str, str] = {
     "perf/inference_share": "share of rollout-worker time spent in policy inference",
     "perf/transfer_share": "share of learner-loop time spent waiting for fragments and publishing weights",
     "perf/learner_share": "share of learner-loop time spent training",
+    "perf/fetch_share": "share of learner-loop time spent fetching ready fragments (moving them to the learner's "
+                        "node and deserialising them; part of perf/transfer_share; Ray only)",
+    "perf/remote_fetch_share": "the same for fragments made on another node than the learner's: the cost of "
+                               "moving fragments between nodes",
+    "perf/remote_fragment_fraction": "share of fragments made on another node than the learner's",
+    "perf/fetch_ms_local": "mean time to fetch a fragment made on the learner's node (ms)",
+    "perf/fetch_ms_remote": "mean time to fetch a fragment made on another node (ms)",
+    "perf/fragment_mb": "mean size of a fragment's arrays (MiB)",
     "perf/policy_version": "learner policy version (bumped once per learner iteration)",
     "perf/num_updates": "optimizer steps taken",
     "perf/worker_restarts": "rollout workers replaced after dying (cumulative)",

@@ -6,6 +6,11 @@ Both expose the same three calls, so the training loop does not know which one i
     sampler.get() -> fragment              # blocks until one fragment is ready
     sampler.close()
 
+On a cluster the rollout actors are spread over the nodes (``scheduling_strategy="SPREAD"``), every
+fragment carries the id of the node that produced it, and the sampler times how long fetching each ready
+fragment takes (``fetch_time_s``: moving it to the learner's node, when it was made elsewhere, plus
+deserialising it), so the trainer can report the cost of moving fragments between nodes.
+
 The Ray sampler bounds the fragments in flight (backpressure): at most ``max_in_flight`` rollout
 calls are outstanding, so workers idle rather than run ahead of a slow learner, which bounds policy lag.
 Weights go through a small ``WeightsStore`` actor that holds the reference of the newest version: a
@@ -16,18 +21,26 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
+import time
 from collections import deque
 from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
 
+import numpy as np
 import ray
 import torch
 
-from quad_env import EnvConfig
+from quad_env import EnvConfig, VecQuadEnv
 from swarm_appo.rollout import RolloutWorker, worker_seed
 
 log = logging.getLogger(__name__)
 
 Weights = Tuple[int, Dict[str, torch.Tensor]]
+
+
+def fragment_nbytes(fragment: Dict[str, Any]) -> int:
+    """Bytes of a fragment's arrays (what moves between nodes, give or take the small episode records)."""
+    return sum(v.nbytes for v in fragment.values() if isinstance(v, np.ndarray))
 
 
 class SerialSampler:
@@ -74,12 +87,28 @@ class RayRolloutWorker(RolloutWorker):
     def __init__(self, store, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.store = store
+        self.node_id = ray.get_runtime_context().get_node_id()
+
+    def location(self) -> Dict[str, Any]:
+        """Where this actor runs: Ray node id, node IP, host name and process id."""
+        return {"node_id": self.node_id, "ip": ray.util.get_node_ip_address(), "hostname": socket.gethostname(),
+                "pid": os.getpid()}
+
+    def ready(self) -> Dict[str, Any]:
+        """Compile the simulator kernels (on a throwaway swarm: this worker's own streams stay untouched), then
+        say where this actor runs. A fresh node has no numba cache yet; compiling here keeps the first
+        fragments of all workers equally fast."""
+        cfg = self.env.cfg
+        VecQuadEnv(cfg, num_envs=1, seed=0).step(np.zeros((cfg.num_agents, 4), np.float32))
+        return self.location()
 
     def collect_latest(self) -> Dict[str, Any]:
         version, (ref,) = ray.get(self.store.latest.remote())
         if ref is not None and version != self.policy_version:
             self.set_weights(*ray.get(ref))
-        return self.collect()
+        fragment = self.collect()
+        fragment["node_id"] = self.node_id
+        return fragment
 
 
 class RaySampler:
@@ -87,14 +116,19 @@ class RaySampler:
 
     def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
                  rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0,
-                 store_values: bool = False):
+                 store_values: bool = False, scheduling_strategy: str = "DEFAULT",
+                 ready_timeout_s: Optional[float] = None):
+        """``scheduling_strategy="SPREAD"`` places the actors over all nodes of a cluster; with
+        ``ready_timeout_s`` the constructor waits until every actor is placed and has compiled its kernels,
+        and raises a clear error if the cluster cannot host them all in that time."""
         if max_in_flight < num_workers:
             raise ValueError(f"runner.max_fragments_in_flight ({max_in_flight}) must be >= the number of "
                              f"rollout workers ({num_workers}), or some workers would never run")
         self._args = (env_cfg, model_factory, envs_per_worker, rollout)
         self._seed = seed
         self._store_values = store_values
-        self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0)(RayRolloutWorker)
+        self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0,
+                                      scheduling_strategy=scheduling_strategy)(RayRolloutWorker)
         self._store = WeightsStore.remote()
         self.workers: List[Any] = []
         self._incarnation: List[int] = []
@@ -105,6 +139,20 @@ class RaySampler:
         self._pending: Dict[Any, int] = {}  # object ref -> worker index
         self._ready: Deque[Dict[str, Any]] = deque()
         self.restarts = 0
+        if ready_timeout_s is not None:
+            self._wait_until_ready(ready_timeout_s, cpus_per_worker)
+
+    def _wait_until_ready(self, timeout_s: float, cpus_per_worker: float) -> None:
+        refs = [w.ready.remote() for w in self.workers]
+        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=timeout_s)
+        if len(ready) < len(refs):
+            self.close()
+            cpus = ray.cluster_resources().get("CPU", 0)
+            raise RuntimeError(
+                f"only {len(ready)} of {len(refs)} rollout workers started within {timeout_s:.0f} s; the cluster "
+                f"has {cpus:g} CPUs and each worker needs {cpus_per_worker:g}. Lower runner.num_workers "
+                f"(0 = fit the cluster) or add nodes")
+        ray.get(ready)  # raises if an actor failed to start
 
     def _spawn(self, index: int, incarnation: int):
         env_cfg, model_factory, envs_per_worker, rollout = self._args
@@ -130,11 +178,16 @@ class RaySampler:
     def get(self) -> Dict[str, Any]:
         while True:
             self._fill()
-            ready, _ = ray.wait(list(self._pending), num_returns=1)
+            # fetch_local=False: return as soon as a fragment exists on any node, so that the ray.get below
+            # times the move to this node (and the deserialisation) apart from the wait for a worker.
+            ready, _ = ray.wait(list(self._pending), num_returns=1, fetch_local=False)
             ref = ready[0]
             w = self._pending.pop(ref)
             try:
-                return ray.get(ref)
+                t0 = time.perf_counter()
+                fragment = ray.get(ref)
+                fragment["fetch_time_s"] = time.perf_counter() - t0
+                return fragment
             except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
                 self._replace(w, exc)
 
@@ -153,6 +206,10 @@ class RaySampler:
 
     def worker_pids(self) -> List[int]:
         return ray.get([w.pid.remote() for w in self.workers])
+
+    def worker_locations(self) -> List[Dict[str, Any]]:
+        """Node id, IP, host name and pid of every current rollout actor, in worker order."""
+        return ray.get([w.location.remote() for w in self.workers])
 
     def close(self) -> None:
         for w in self.workers:
@@ -174,3 +231,11 @@ def init_local_ray(num_cpus: Optional[int] = None) -> None:
         return
     ray.init(num_cpus=num_cpus or os.cpu_count(), _node_ip_address="127.0.0.1", include_dashboard=False,
              log_to_driver=True, configure_logging=False)
+
+
+def init_ray(address: Optional[str]) -> None:
+    """``runner.ray_address``: None starts (or reuses) a local Ray; "auto" or "<host>:<port>" joins a cluster."""
+    if address is None:
+        init_local_ray()
+    elif not ray.is_initialized():
+        ray.init(address=address, log_to_driver=True, configure_logging=False)

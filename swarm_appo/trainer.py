@@ -5,7 +5,8 @@
     result = train(None, resume_dir=result.run_dir)   # continue it
 
 The loop lives in the driver process together with the learner; rollout workers are Ray actors
-(or in-process objects in serial mode). Counters, weights, optimizer, RNG states and the wandb run id
+(or in-process objects in serial mode), on this machine or, with ``runner.ray_address``, spread over the
+nodes of a Ray cluster (``swarm_appo.cluster``). Counters, weights, optimizer, RNG states and the wandb run id
 are checkpointed atomically, so a run killed at any moment resumes from its last checkpoint.
 """
 from __future__ import annotations
@@ -30,7 +31,7 @@ from swarm_appo.evaluate import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
 from swarm_appo.model import model_factory
-from swarm_appo.sampling import RaySampler, SerialSampler, init_local_ray
+from swarm_appo.sampling import RaySampler, SerialSampler, fragment_nbytes, init_ray
 
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = 1
@@ -74,9 +75,17 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def on_cluster(cfg: TrainConfig) -> bool:
+    return cfg.runner.ray_address is not None and not cfg.runner.serial
+
+
 def num_rollout_workers(cfg: TrainConfig) -> int:
+    """runner.num_workers, or 0 = fit the cores (of this machine, or of the whole cluster; Ray must be up)."""
     if cfg.runner.num_workers > 0:
         return cfg.runner.num_workers
+    if on_cluster(cfg):
+        from swarm_appo.cluster import cluster_rollout_workers
+        return cluster_rollout_workers()
     return max(1, (os.cpu_count() or 2) - 1)  # one core stays with the learner
 
 
@@ -108,6 +117,22 @@ def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
             vals = [e[src] for e in eps if src in e]
             if vals:
                 out[f"swarm/{scen}/{key}"] = float(np.mean(vals))
+    return out
+
+
+def fetch_metrics(timers: Dict[str, float], driver_time: float) -> Dict[str, float]:
+    """perf/ records of fragment fetching (Ray samplers): share of the learner loop, ms per fragment, size."""
+    n_local, n_remote = timers["fragments_local"], timers["fragments_remote"]
+    if n_local + n_remote == 0:
+        return {}
+    out = {"perf/fetch_share": (timers["fetch_local"] + timers["fetch_remote"]) / driver_time,
+           "perf/remote_fetch_share": timers["fetch_remote"] / driver_time,
+           "perf/remote_fragment_fraction": n_remote / (n_local + n_remote),
+           "perf/fragment_mb": timers["fragment_bytes"] / (n_local + n_remote) / 2**20}
+    if n_local:
+        out["perf/fetch_ms_local"] = 1e3 * timers["fetch_local"] / n_local
+    if n_remote:
+        out["perf/fetch_ms_remote"] = 1e3 * timers["fetch_remote"] / n_remote
     return out
 
 
@@ -154,17 +179,34 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                            run_name=run_dir.name, resume_id=state.get("wandb_id") if state else None,
                            entity=cfg.wandb.entity, group=cfg.wandb.group, tags=cfg.wandb.tags,
                            resume_step=agent_steps if state else None)
-    num_workers = num_rollout_workers(cfg)
     sampler_seed = cfg.runner.seed + 7919 * learner.version  # a resumed run does not replay old episodes
     store_values = cfg.algo.value_clip is not None  # behaviour values are only needed for value clipping
+    placement = None  # on a cluster: where the learner and each rollout worker run (cluster.json)
     if cfg.runner.serial:
+        num_workers = num_rollout_workers(cfg)
         sampler = SerialSampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
                                 sampler_seed, store_values=store_values)
     else:
-        init_local_ray()
-        sampler = RaySampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
-                             sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers),
-                             store_values=store_values)
+        init_ray(cfg.runner.ray_address)
+        num_workers = num_rollout_workers(cfg)
+        cluster_options = {}
+        if on_cluster(cfg):
+            from swarm_appo.cluster import READY_TIMEOUT_S, Placement
+            placement = Placement(cfg.runner.ray_address, device)
+            cluster_options = dict(scheduling_strategy="SPREAD", ready_timeout_s=READY_TIMEOUT_S)
+        try:
+            sampler = RaySampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
+                                 sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers),
+                                 store_values=store_values, **cluster_options)
+        except Exception:  # e.g. the cluster cannot host the workers: leave no wandb run open
+            logger.close()
+            raise
+        if placement is not None:
+            placement.set_workers(sampler.worker_locations())
+            placement.write(run_dir)
+            log.info("learner on %s (%s); %d rollout workers on %d node(s), details in %s",
+                     placement.learner["ip"], device, num_workers,
+                     len({w["node_id"] for w in placement.workers}), run_dir / "cluster.json")
     sampler.publish(*learner.cpu_weights())
 
     bar = None
@@ -196,6 +238,13 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             timers["wait"] += time.perf_counter() - t0
             timers["env"] += frag["env_time_s"]
             timers["inference"] += frag["inference_time_s"]
+            if "fetch_time_s" in frag:  # Ray: moving the fragment to this node + deserialising (part of wait)
+                remote = "remote" if placement is not None and frag["node_id"] != placement.learner_node else "local"
+                timers[f"fetch_{remote}"] += frag["fetch_time_s"]
+                timers[f"fragments_{remote}"] += 1
+                timers["fragment_bytes"] += fragment_nbytes(frag)
+            if placement is not None:
+                placement.count(frag)
             agent_steps += frag["num_agent_steps"]
             episodes.extend(frag["episode_stats"])
             batch.append(frag)
@@ -232,6 +281,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                 "perf/worker_restarts": float(sampler.restarts),
                 "charts/elapsed_s": now - t_start,
             })
+            record.update(fetch_metrics(timers, driver))
             record.update(system_metrics())
             logger.log(agent_steps, record)
             if on_iteration is not None:
@@ -259,6 +309,12 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                            f"The run directory {run_dir} is intact; resume it from its last checkpoint "
                            f"({last_ckpt}) with --resume {run_dir}") from exc
     last_ckpt = checkpoint(last_reward)
+    if placement is not None:
+        try:
+            placement.set_workers(sampler.worker_locations())  # replacements may sit elsewhere
+        except Exception:  # a worker died just now: keep the last known placement
+            pass
+        placement.write(run_dir, worker_restarts=sampler.restarts)
     sampler.close()
     if bar is not None:
         bar.close()
