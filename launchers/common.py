@@ -1,0 +1,44 @@
+"""What the launchers share: the config arguments (``--config`` + ``key=value``), loading and validating
+them, and the summary printed at the end of a run."""
+from __future__ import annotations
+
+import argparse
+import signal
+from typing import List, Optional
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default=None, help="YAML config (default: the embedded quickstart config)")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. env.num_agents=16")
+
+
+def load_cli_config(path: Optional[str], overrides: List[str]):
+    """The validated config (encoder names included); raises ConfigError naming the offending key."""
+    import encoders
+    from swarm_appo.config import load_config, validate
+    return validate(load_config(path, overrides), known_encoders=encoders.ENCODERS)
+
+
+def print_result(result) -> None:
+    """Where a finished run left its files, and its end-of-run evaluation."""
+    print(f"run directory: {result.run_dir}")
+    print(f"agent steps: {result.agent_steps}  policy version: {result.policy_version}  "
+          f"worker restarts: {result.worker_restarts}")
+    print(f"checkpoint: {result.checkpoint}")
+    print(f"metrics: {result.run_dir / 'metrics.jsonl'}")
+    if result.final_eval:
+        ev = result.final_eval
+        print(f"final evaluation (mean actions): "
+              f"distance to goal {ev.get('eval/dist', float('nan')):.2f} m (last 5 s) vs "
+              f"{ev.get('eval_random/dist', float('nan')):.2f} m for random actions "
+              f"(ratio {ev.get('eval/dist_ratio_to_random', float('nan')):.2f}); "
+              f"collisions/episode {ev.get('eval/collisions', float('nan')):.2f}")
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (a scheduler, `kill`, `ray job stop`) stops like Ctrl-C: a final checkpoint, then a clean exit."""
+    signal.signal(signal.SIGTERM, _interrupt)
