@@ -12,11 +12,11 @@ copied to the other like on a real cluster) at 127.0.0.1. A keeper process start
 when it ends (``LocalCluster.stop``, Ctrl-C, or its parent closing the pipe): other Ray instances on the
 machine are never touched (no ``ray stop``). Ports are picked free, so it runs next to other clusters.
 
-Two Ray settings make a loopback cluster work: ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` stops Ray from
-replacing 127.0.0.1 by the machine's network address when a process joins (its nodes would then be
-unreachable under the address they are registered with), and token authentication is switched on like
-``ray start`` does when a token exists (``~/.ray/auth_token``), so clients authenticate as on a real
-cluster.
+Three settings make a loopback cluster work: each node unpacks a job's working directory into its own
+folder, as separate machines would (sharing one, a node's agent replaces the copy another node's processes
+run from); ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` stops Ray from replacing 127.0.0.1 by the machine's
+network address when a process joins; and token authentication is switched on like ``ray start`` does when
+a token exists (``~/.ray/auth_token``), so clients authenticate as on a real cluster.
 """
 from __future__ import annotations
 
@@ -65,11 +65,15 @@ def serve(nodes: int, cpus_per_node: float, object_store_mb: int, temp_dir: str,
     dashboard_port = free_port()
     common = dict(node_ip_address=LOOPBACK, num_cpus=cpus_per_node, object_store_memory=object_store_mb * 2**20,
                   temp_dir=temp_dir, metrics_export_port=free_port(), runtime_env_agent_port=free_port())
+    # The nodes share one session directory; each gets its own runtime-env folder (where the job's working
+    # directory is unpacked), as on separate machines: otherwise one node's agent replaces the copy that the
+    # other node's processes are running from.
     cluster = Cluster(initialize_head=True, head_node_args=dict(
         common, include_dashboard=True, dashboard_host=LOOPBACK, dashboard_port=dashboard_port,
-        dashboard_agent_listen_port=free_port()))
-    for _ in range(nodes - 1):
-        cluster.add_node(**dict(common, metrics_export_port=free_port(), runtime_env_agent_port=free_port()))
+        dashboard_agent_listen_port=free_port(), runtime_env_dir_name="runtime_resources_node0"))
+    for i in range(1, nodes):
+        cluster.add_node(**dict(common, metrics_export_port=free_port(), runtime_env_agent_port=free_port(),
+                                runtime_env_dir_name=f"runtime_resources_node{i}"))
     cluster.wait_for_nodes()
 
     def stop(*_):
@@ -132,10 +136,24 @@ class LocalCluster:
         env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
         env["PATH"] = os.path.dirname(sys.executable) + os.pathsep + env.get("PATH", "")
         env.pop("RAY_ADDRESS", None)
+        env.setdefault("RAY_DASHBOARD_STARTUP_TIMEOUT_S", "300")  # Ray's 60 s is short on a busy machine
         enable_token_auth_if_available(env)
         return env
 
-    def start(self) -> "LocalCluster":
+    def start(self, attempts: int = 2) -> "LocalCluster":
+        """Start the nodes. Some of Ray's start-up waits are fixed (30 s for a raylet to register), which a
+        busy machine can miss: a failed start is retried from scratch ``attempts - 1`` times."""
+        for attempt in range(1, attempts + 1):
+            try:
+                return self._start_once()
+            except RuntimeError as exc:
+                if attempt == attempts:
+                    raise
+                print(f"local Ray cluster: start attempt {attempt} failed, retrying ({str(exc)[-300:]})",
+                      file=sys.stderr)
+        raise AssertionError("unreachable")
+
+    def _start_once(self) -> "LocalCluster":
         # Short path: Ray's unix socket paths must stay under ~100 characters.
         self.temp_dir = tempfile.mkdtemp(prefix="swc_", dir="/tmp")
         info_file = os.path.join(self.temp_dir, "cluster.json")
