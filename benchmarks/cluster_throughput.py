@@ -19,7 +19,11 @@ The transfer columns come from the trainer's perf/ metrics: ``fetch`` is the lea
 that is ready (moving it to the learner's node when it was made elsewhere, and deserialising it), split by
 where the fragment was made; "remote fetch share" is the share of the learner loop spent fetching fragments
 from the other node. On one machine the "network" is loopback: the figures are Ray's object-transfer
-overhead, not a network's bandwidth. Figures are appended to benchmarks/RESULTS.md.
+overhead, not a network's bandwidth.
+
+On a shared machine a run only gets the cores others leave: every row also reports the cores its own
+processes used and the cores all other processes used meanwhile (from /proc), and ``--repeats`` runs the
+rows interleaved several times. Figures are appended to benchmarks/RESULTS.md.
 """
 from __future__ import annotations
 
@@ -30,6 +34,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Dict, List
@@ -41,6 +46,82 @@ from benchmarks.training_throughput import measure_run
 
 FETCH_KEYS = ("perf/fetch_share", "perf/remote_fetch_share", "perf/remote_fragment_fraction",
               "perf/fetch_ms_local", "perf/fetch_ms_remote", "perf/fragment_mb", "perf/transfer_share")
+
+
+class CpuMonitor:
+    """Cores used by this process and its descendants vs by everything else on the machine, sampled each second
+    from /proc while the ``with`` block runs (Linux only; zeros elsewhere)."""
+
+    def __init__(self, interval_s: float = 1.0):
+        self.interval_s = interval_s
+        self.ticks = os.sysconf("SC_CLK_TCK")
+        self.own = self.machine = 0.0  # CPU-seconds
+        self._last: Dict[int, float] = {}
+        self._stop = threading.Event()
+
+    @staticmethod
+    def _processes() -> Dict[int, tuple]:
+        out = {}
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    fields = Path(f"/proc/{entry}/stat").read_text().rsplit(") ", 1)[1].split()
+                    out[int(entry)] = (int(fields[1]), int(fields[11]) + int(fields[12]))  # ppid, utime + stime
+                except (OSError, IndexError, ValueError):
+                    pass
+        return out
+
+    def _own_times(self) -> Dict[int, float]:
+        procs = self._processes()
+        children: Dict[int, List[int]] = {}
+        for pid, (ppid, _) in procs.items():
+            children.setdefault(ppid, []).append(pid)
+        todo, own = [os.getpid()], {}
+        while todo:
+            pid = todo.pop()
+            if pid in procs:
+                own[pid] = procs[pid][1] / self.ticks
+            todo.extend(children.get(pid, []))
+        return own
+
+    @staticmethod
+    def _busy() -> float:
+        fields = [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+        return (sum(fields) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")  # all but idle and iowait
+
+    def _sample(self) -> None:
+        own = self._own_times()
+        self.own += sum(t - self._last.get(pid, t) for pid, t in own.items())  # new processes count from now
+        self._last = own
+        busy = self._busy()
+        self.machine += busy - self._busy_last
+        self._busy_last = busy
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            self._sample()
+
+    def __enter__(self) -> "CpuMonitor":
+        self.t0 = time.perf_counter()
+        try:
+            self._last, self._busy_last = self._own_times(), self._busy()
+        except OSError:
+            return self
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.wall = time.perf_counter() - self.t0
+        if hasattr(self, "_thread"):
+            self._stop.set()
+            self._thread.join()
+            self._sample()
+
+    def figures(self) -> Dict[str, float]:
+        """``own_cores`` and ``other_cores``: mean cores busy with this run, and with everything else."""
+        wall = max(getattr(self, "wall", 0.0), 1e-9)
+        return {"own_cores": self.own / wall, "other_cores": max(self.machine - self.own, 0.0) / wall}
 
 
 def overrides(seconds: float, run_dir: Path, name: str, workers: int) -> List[str]:
@@ -62,52 +143,55 @@ def transfer_figures(run_dir: Path) -> Dict[str, float]:
     return out
 
 
-def one_node_rows(worker_counts: List[int], seconds: float, tmp: Path) -> List[dict]:
+def one_node_row(workers: int, seconds: float, tmp: Path, max_workers: int, repeat: int) -> dict:
     import ray
 
     from swarm_appo.config import load_config
     from swarm_appo.sampling import init_local_ray
     from swarm_appo.trainer import train
 
-    init_local_ray(num_cpus=max(worker_counts) + 1)  # logical CPUs: every worker and the learner get one
-    rows = []
+    init_local_ray(num_cpus=max_workers + 1)  # logical CPUs: every worker and the learner get one
     try:
-        for k in worker_counts:
-            name = f"local_w{k}"
-            result = train(load_config(None, overrides(seconds, tmp, name, k)), progress=False)
-            row = dict(setup="1 node", workers=k, **measure_run(result.run_dir), **transfer_figures(result.run_dir))
-            rows.append(row)
-            print(f"1 node, {k} workers: {row['sps']:,.0f} agent-steps/s, fetch "
-                  f"{row['perf/fetch_ms_local']:.1f} ms per fragment", flush=True)
+        with CpuMonitor() as cpu:
+            result = train(load_config(None, overrides(seconds, tmp, f"local_w{workers}_r{repeat}", workers)),
+                           progress=False)
     finally:
         ray.shutdown()
-    return rows
+    row = dict(setup="1 node", workers=workers, **measure_run(result.run_dir), **transfer_figures(result.run_dir),
+               **cpu.figures())
+    print(f"1 node, {workers} workers: {row['sps']:,.0f} agent-steps/s, fetch {row['perf/fetch_ms_local']:.1f} ms "
+          f"per fragment; cores: this run {row['own_cores']:.2f}, others {row['other_cores']:.2f}", flush=True)
+    return row
 
 
-def two_node_row(workers: int, seconds: float, cpus_per_node: float, tmp: Path) -> dict:
+def two_node_row(workers: int, seconds: float, cpus_per_node: float, tmp: Path, repeat: int) -> dict:
     from launchers.local_cluster import LocalCluster
 
-    name = f"cluster_w{workers}"
+    name = f"cluster_w{workers}_r{repeat}"
     with LocalCluster(nodes=2, cpus_per_node=cpus_per_node) as cluster:
         cmd = [sys.executable, "-m", "launchers.ray_cluster", "submit", "--address", cluster.dashboard_url, "--follow",
                *overrides(seconds, tmp, name, workers)]
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         start = time.perf_counter()
-        done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
+        with CpuMonitor() as cpu:
+            done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
         job_s = time.perf_counter() - start
     if done.returncode != 0:
         raise RuntimeError(f"the cluster run failed:\n{(done.stdout + done.stderr)[-4000:]}")
     run_dir = tmp / name
     placement = json.loads((run_dir / "cluster.json").read_text())
     learner = placement["learner"]["node_id"]
-    per_node = [sum(w["node_id"] == n for w in placement["rollout_workers"]) for n in placement["fragments_per_node"]]
-    row = dict(setup="2 nodes", workers=workers, job_s=job_s, **measure_run(run_dir), **transfer_figures(run_dir))
-    row["placement"] = (f"learner + {sum(w['node_id'] == learner for w in placement['rollout_workers'])} worker(s) "
-                        f"on the head, {workers - sum(w['node_id'] == learner for w in placement['rollout_workers'])}"
-                        f" on the second node (workers per node {per_node})")
+    on_head = sum(w["node_id"] == learner for w in placement["rollout_workers"])
+    fragments = placement["fragments_per_node"]
+    row = dict(setup="2 nodes", workers=workers, job_s=job_s, **measure_run(run_dir), **transfer_figures(run_dir),
+               **cpu.figures())
+    row["placement"] = (f"learner + {on_head} worker(s) on the head ({fragments.get(learner, 0)} fragments), "
+                        f"{workers - on_head} on the second node "
+                        f"({sum(v for k, v in fragments.items() if k != learner)} fragments)")
     print(f"2 nodes, {workers} workers: {row['sps']:,.0f} agent-steps/s, fetch local "
           f"{row['perf/fetch_ms_local']:.1f} ms / remote {row['perf/fetch_ms_remote']:.1f} ms per fragment, "
-          f"remote fetch share {100 * row['perf/remote_fetch_share']:.1f}%", flush=True)
+          f"remote fetch share {100 * row['perf/remote_fetch_share']:.1f}%; cores: this run "
+          f"{row['own_cores']:.2f}, others {row['other_cores']:.2f}", flush=True)
     return row
 
 
@@ -121,6 +205,7 @@ def main(argv=None) -> None:
     p.add_argument("--cluster-workers", type=int, default=3, help="rollout actors on the two-node cluster")
     p.add_argument("--cpus-per-node", type=float, default=2, help="logical CPUs of each cluster node")
     p.add_argument("--seconds", type=float, default=60.0, help="training time per row")
+    p.add_argument("--repeats", type=int, default=2, help="run all rows this many times, interleaved")
     p.add_argument("--no-cluster", action="store_true", help="skip the two-node cluster row")
     p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
     p.add_argument("--note", default="", help="a line about the conditions (e.g. a shared machine)")
@@ -129,21 +214,28 @@ def main(argv=None) -> None:
     load_before = load_average()
 
     tmp = Path(tempfile.mkdtemp(prefix="cluster_bench_"))
-    rows = one_node_rows([int(k) for k in args.workers.split(",")], args.seconds, tmp)
-    if not args.no_cluster:
-        rows.append(two_node_row(args.cluster_workers, args.seconds, args.cpus_per_node, tmp))
+    counts = [int(k) for k in args.workers.split(",")]
+    rows = []
+    for repeat in range(args.repeats):
+        rows += [one_node_row(k, args.seconds, tmp, max(counts), repeat) for k in counts]
+        if not args.no_cluster:
+            rows.append(two_node_row(args.cluster_workers, args.seconds, args.cpus_per_node, tmp, repeat))
+    rows.sort(key=lambda r: (r["setup"], r["workers"]))
 
-    header = ("| setup | rollout actors | agent-steps/s | fragment MiB | fetch ms, same node / other node | "
-              "fragments from the other node | remote fetch share | all fetches share | wait+publish share | "
-              "lag mean / max |\n|---|---|---|---|---|---|---|---|---|---|")
-    lines = [f"| {r['setup']} | {r['workers']} | {r['sps']:,.0f} | {fmt(r['perf/fragment_mb'], '.1f')} | "
+    header = ("| setup | rollout actors | agent-steps/s | cores used: this run / others | learner share | "
+              "fragment MiB | fetch ms, same node / other node | fragments from the other node | remote fetch share | "
+              "all fetches share | wait+publish share | lag mean / max |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|---|")
+    lines = [f"| {r['setup']} | {r['workers']} | {r['sps']:,.0f} | {r['own_cores']:.2f} / {r['other_cores']:.2f} | "
+             f"{r['learner_share']:.2f} | {fmt(r['perf/fragment_mb'], '.1f')} | "
              f"{fmt(r['perf/fetch_ms_local'], '.1f')} / {fmt(r['perf/fetch_ms_remote'], '.1f')} | "
              f"{fmt(100 * r['perf/remote_fragment_fraction'], '.0f')}% | "
              f"{fmt(100 * r['perf/remote_fetch_share'], '.1f')}% | {fmt(100 * r['perf/fetch_share'], '.1f')}% | "
              f"{fmt(100 * r['perf/transfer_share'], '.0f')}% | {r['lag_mean']:.1f} / {r['lag_max']:.0f} |"
              for r in rows]
-    notes = [f"- two-node run: {r['placement']}; job wall time {r['job_s']:.0f} s (cluster start-up excluded, "
-             f"job start-up and numba compilation on each node included)" for r in rows if "placement" in r]
+    notes = [f"- two-node run {i + 1}: {r['placement']}; job wall time {r['job_s']:.0f} s (cluster start-up excluded, "
+             f"job start-up and numba compilation on each node included)"
+             for i, r in enumerate(r for r in rows if "placement" in r)]
     section = "\n".join([
         f"## cluster_throughput — {datetime.datetime.now().isoformat(timespec='seconds')}",
         "",
@@ -153,7 +245,8 @@ def main(argv=None) -> None:
         f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}",
         *([f"- conditions: {args.note}"] if args.note else []),
         f"- config: quickstart (DeepSets 64, N = 8, 16 swarms x 8 drones per worker, T = 128, batch 2048, "
-        f"2 epochs), {args.seconds:.0f} s of training per row, figures after a 30% warm-up; one node = a local "
+        f"2 epochs), {args.seconds:.0f} s of training per row, {args.repeats} repeat(s) interleaved, figures after "
+        f"a 30% warm-up; cores used = mean busy cores of this run's processes / of all other processes (/proc); one node = a local "
         f"Ray with max(actors) + 1 logical CPUs; two nodes = launchers.local_cluster (2 Ray nodes x "
         f"{args.cpus_per_node:g} logical CPUs, own object stores, loopback) + launchers.ray_cluster submit",
         "- fetch = the learner's ray.get of a ready fragment (copy between object stores when made on the other "

@@ -120,3 +120,15 @@ def test_submit_to_a_two_node_cluster_spreads_rollout_actors(tmp_path):
     pids = cluster.node_pids + [w["pid"] for w in placement["rollout_workers"]] + [cluster.info["keeper_pid"]]
     assert not _still_alive(pids)
     assert not os.path.exists(cluster.temp_dir)
+
+
+def test_example_cluster_yaml_is_a_valid_ray_cluster_config():
+    """configs/cluster/example.yaml passes the schema `ray up` checks (Ray's autoscaler validator)."""
+    import yaml
+    from ray.autoscaler._private.util import prepare_config, validate_config
+
+    config = yaml.safe_load((ROOT / "configs" / "cluster" / "example.yaml").read_text())
+    validate_config(prepare_config(config))
+    config["max_wrkers"] = 3  # the validator is strict: a typo is caught
+    with pytest.raises(Exception, match="max_wrkers"):
+        validate_config(prepare_config(config))
