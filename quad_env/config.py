@@ -28,6 +28,13 @@ class RewardConfig:
     """c4: weight of -||omega_i|| (times dt)."""
     action: float = 0.05
     """c5: weight of -||u_i|| on the raw action in [-1, 1]^4 (times dt)."""
+    floor: float = 0.0
+    """Shaping, not in the paper (0 = the paper's reward): per-step penalty while a drone is on the floor
+    (times dt), like QuadSwarm's "crash" term. Without it, landing scores better than uncontrolled flight,
+    which traps a policy learning from scratch (see the README's quickstart section)."""
+    tilt: float = 0.0
+    """Shaping, not in the paper (0 = the paper's reward): weight of -(1 - cos tilt) = -(1 - R_zz), the
+    tilt of the drone's thrust axis from vertical (times dt)."""
 
 
 @dataclass
@@ -192,7 +199,7 @@ class EnvConfig:
             raise ValueError(f"env.episode_duration must last at least one control step, got {self.episode_duration!r}")
         if not isinstance(self.scenario, str):
             raise ValueError(f"env.scenario must be a scenario name (str), got {self.scenario!r}")
-        for name in ("pos", "collision", "proximity", "omega", "action"):
+        for name in ("pos", "collision", "proximity", "omega", "action", "floor", "tilt"):
             if not getattr(self.reward, name) >= 0:
                 raise ValueError(f"env.reward.{name} must be >= 0, got {getattr(self.reward, name)!r}")
         if not self.reward.proximity_dist > 0:

@@ -29,30 +29,30 @@ import numpy as np
 from numba import njit
 
 from quad_env.params import (
-    F_ARM, F_C_ACTION, F_C_COLL, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
+    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
     I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
-    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE,
+    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, NUM_TERMS,
 )
 from quad_env.rng import normal_from, normal_pair, uniform
 
 # Episode accumulator columns (float64 [E, NUM_ACC]).
 ACC_RETURN = 0  # sum over steps and agents of the reward
-ACC_TERMS = 1  # 5 columns: per-term sums, order of params.REWARD_TERMS
-ACC_COLLISIONS = 6  # new drone-drone contacts (pairs)
-ACC_ROOM = 7  # new floor / wall / ceiling contacts (drones)
-ACC_DIST_TAIL = 8  # sum over the last-5-s steps of the mean distance to goal
-ACC_TAIL_STEPS = 9  # number of steps in that sum
-ACC_DIST_FINAL = 10  # mean distance to goal after the latest step
-ACC_DIST_TAIL1 = 11  # sum over the last-1-s steps of the mean distance to goal
-ACC_TAIL1_STEPS = 12
-ACC_DIST_TAIL3 = 13  # sum over the last-3-s steps of the mean distance to goal
-ACC_TAIL3_STEPS = 14
-ACC_COLL_GRACE = 15  # new drone-drone contacts (pairs) after the grace period
-ACC_ROOM_GRACE = 16  # new room contacts (drones) after the grace period
-NUM_ACC = 17
+ACC_TERMS = 1  # NUM_TERMS (7) columns: per-term sums, order of params.REWARD_TERMS
+ACC_COLLISIONS = 8  # new drone-drone contacts (pairs)
+ACC_ROOM = 9  # new floor / wall / ceiling contacts (drones)
+ACC_DIST_TAIL = 10  # sum over the last-5-s steps of the mean distance to goal
+ACC_TAIL_STEPS = 11  # number of steps in that sum
+ACC_DIST_FINAL = 12  # mean distance to goal after the latest step
+ACC_DIST_TAIL1 = 13  # sum over the last-1-s steps of the mean distance to goal
+ACC_TAIL1_STEPS = 14
+ACC_DIST_TAIL3 = 15  # sum over the last-3-s steps of the mean distance to goal
+ACC_TAIL3_STEPS = 16
+ACC_COLL_GRACE = 17  # new drone-drone contacts (pairs) after the grace period
+ACC_ROOM_GRACE = 18  # new room contacts (drones) after the grace period
+NUM_ACC = 19
 
 # Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success and IColR metrics.
 SUCCESS_WINDOW = 5  # a drone has reached its goal when its mean distance over this many steps ...
@@ -412,6 +412,7 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
     dt = fp[F_CTRL_DT]
     c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
     c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
+    c_floor, c_tilt, floor_z = fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z]
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -513,12 +514,16 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
             r_prox = -c_prox * prox[a]
             r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
             r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
+            r_floor = -c_floor if zi <= floor_z else 0.0
+            r_tilt = -c_tilt * (1.0 - rot[i, 2, 2])
             terms[0, i] = r_pos
             terms[1, i] = r_coll
             terms[2, i] = r_prox
             terms[3, i] = r_omega
             terms[4, i] = r_act
-            rew[i] = r_pos + r_coll + r_prox + r_omega + r_act
+            terms[5, i] = r_floor
+            terms[6, i] = r_tilt
+            rew[i] = r_pos + r_coll + r_prox + r_omega + r_act + r_floor + r_tilt
     return dist_sum / n_agents
 
 
@@ -609,7 +614,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
             done[e] = True
             for a in range(n_agents):
                 rew[base + a] = 0.0
-                for t in range(5):
+                for t in range(NUM_TERMS):
                     terms[t, base + a] = 0.0
             n_done += 1
             continue
@@ -622,7 +627,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
         for a in range(n_agents):
             i = base + a
             acc[e, ACC_RETURN] += rew[i]
-            for t in range(5):
+            for t in range(NUM_TERMS):
                 acc[e, ACC_TERMS + t] += terms[t, i]
         acc[e, ACC_DIST_FINAL] = mean_dist
         if step_count[e] > ip[I_EP_STEPS] - ip[I_TAIL_STEPS]:
