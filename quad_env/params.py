@@ -71,8 +71,8 @@ NUM_I = 16
 METRIC_GRACE_S = 1.5  # grace period of the collision metrics, s
 
 # Reward terms, in the order of the kernel's ``terms`` rows.
-REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt")
-NUM_TERMS = len(REWARD_TERMS)
+REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash")
+KERNEL_TERMS = 7  # the step kernel writes the first 7 rows; "crash" is added by VecQuadEnv (floor contacts)
 
 
 def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):

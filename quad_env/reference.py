@@ -44,7 +44,7 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
         state: dict of float64 arrays pos, vel, rot, omega, motor, goal (shapes as ``DroneState``).
         actions: [M, 4]; step_count: [E] control steps done before this one; contact: [E, N, N] (a < b).
     Returns:
-        new_state, obs [M, D] (float64), rew [M], terms [7, M], new_contact [E, N, N].
+        new_state, obs [M, D] (float64), rew [M], terms [KERNEL_TERMS = 7, M] (the step kernel's terms; "crash" is added by VecQuadEnv), new_contact [E, N, N].
     """
     p, rc = cfg.physics, cfg.reward
     N, K = cfg.num_agents, cfg.num_neighbors

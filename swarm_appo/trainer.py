@@ -22,7 +22,7 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 import torch
 
-from quad_env import ObsLayout, VecQuadEnv
+from quad_env import REWARD_TERMS, ObsLayout, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
 from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
@@ -100,6 +100,10 @@ def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
     by_scenario: Dict[str, List[Dict[str, Any]]] = defaultdict(list)
     for e in episodes:
         by_scenario[e.get("scenario", "unknown")].append(e)
+    for term in REWARD_TERMS:
+        vals = [e[f"rew_{term}"] for e in episodes if f"rew_{term}" in e]
+        if vals:
+            out[f"reward/{term}"] = float(np.mean(vals))
     for key, src in SWARM_METRICS:
         vals = [e[src] for e in episodes if src in e]
         if vals:

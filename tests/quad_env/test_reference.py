@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from quad_env import REWARD_TERMS, VecQuadEnv
+from quad_env import VecQuadEnv
+from quad_env.params import KERNEL_TERMS
 from quad_env.kernels import NUM_ACC, step_kernel
 from quad_env.reference import reference_step
 
@@ -40,7 +41,7 @@ def kernel_step(env, state, actions, step_count, contact):
     ou = np.zeros((M, 4))
     contact = contact.copy()
     steps = step_count.copy()
-    obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((len(REWARD_TERMS), M))
+    obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((KERNEL_TERMS, M))
     step_kernel(actions, s["pos"], s["vel"], s["rot"], s["omega"], s["motor"], ou, s["goal"], contact,
                 np.zeros(M, np.uint8), env._rng.copy(), steps, env._fp_quiet, env._ip_quiet, obs, rew, terms,
                 np.zeros(E, bool), np.zeros(E, bool), np.zeros((E, NUM_ACC)))
