@@ -172,5 +172,8 @@ def init_local_ray(num_cpus: Optional[int] = None) -> None:
     """Start (or reuse) a local Ray bound to loopback."""
     if ray.is_initialized():
         return
+    # Ray starts its workers at niceness 15, below the learner (the driver): on a busy laptop the rollout
+    # actors would then starve while the learner waits for them. Sampling is half of the job: same priority.
+    os.environ.setdefault("RAY_worker_niceness", "0")
     ray.init(num_cpus=num_cpus or os.cpu_count(), _node_ip_address="127.0.0.1", include_dashboard=False,
              log_to_driver=True, configure_logging=False)
