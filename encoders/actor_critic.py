@@ -44,19 +44,21 @@ class ActorCritic(nn.Module):
         normalize_obs: scale each observation field by its running RMS norm first (``FieldScaleNorm``,
             equivariance-preserving); its statistics change only through ``obs_norm.update``.
         init_action_mean: initial mean action (the bias of the actor's last layer), e.g. the hover command.
+        init_actor_out_scale: multiplies the Xavier-uniform weights of the actor's last layer; small values
+            (PPO practice: 0.01) start the policy at a near-constant mean action ``init_action_mean``.
     """
 
     def __init__(self, layout: ObsLayout, encoder: str = "deepsets", encoder_kwargs: Optional[dict] = None,
                  share_encoder: bool = False, action_dim: int = 4, head_hidden: int = 256,
                  head_activation: str = "tanh", init_log_std: float = 0.0, normalize_obs: bool = False,
-                 init_action_mean: float = 0.0):
+                 init_action_mean: float = 0.0, init_actor_out_scale: float = 1.0):
         super().__init__()
         encoder_kwargs = dict(encoder_kwargs or {})
         self.layout = layout
         self.config = dict(encoder=encoder, encoder_kwargs=encoder_kwargs, share_encoder=share_encoder,
                            action_dim=action_dim, head_hidden=head_hidden, head_activation=head_activation,
                            init_log_std=init_log_std, normalize_obs=normalize_obs,
-                           init_action_mean=init_action_mean)
+                           init_action_mean=init_action_mean, init_actor_out_scale=init_actor_out_scale)
         self.share_encoder = share_encoder
         self.action_dim = action_dim
         self.obs_norm = FieldScaleNorm(layout) if normalize_obs else None
@@ -67,6 +69,7 @@ class ActorCritic(nn.Module):
         self.critic_head = xavier_init_(mlp([out_dim, head_hidden, 1], head_activation, last_act=False))
         with torch.no_grad():
             self.actor_head[-1].bias.fill_(float(init_action_mean))
+            self.actor_head[-1].weight.mul_(float(init_actor_out_scale))
         self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
 
     # ------------------------------------------------------------------ pieces

@@ -57,6 +57,10 @@ class ModelConfig:
     init_action_mean: float = 0.0
     """Initial mean action (the actor's output bias). 2 / thrust_to_weight - 1 (0.053 for the Crazyflie)
     is the hover command: the untrained policy then commands hover thrust on average (0 gives 0.95 g)."""
+    init_actor_out_scale: float = 1.0
+    """Multiplies the Xavier-uniform init of the actor's last layer (1 = the paper). 0.01 (PPO practice)
+    makes the untrained policy command ``init_action_mean`` in every state instead of a random state-dependent
+    thrust pattern that flips a drone within a second."""
 
 
 @dataclass
@@ -431,6 +435,7 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
     if known_encoders is not None and m.encoder not in known_encoders:
         raise ConfigError(f"model.encoder: unknown encoder {m.encoder!r}; valid: {list(known_encoders)}")
     _check(m.head_hidden >= 1, "model.head_hidden", "must be >= 1", m.head_hidden)
+    _check(m.init_actor_out_scale >= 0, "model.init_actor_out_scale", "must be >= 0", m.init_actor_out_scale)
     _check(-1.0 <= m.init_action_mean <= 1.0, "model.init_action_mean", "must be in [-1, 1] (the action range)",
            m.init_action_mean)
     _check(bool(m.head_activation), "model.head_activation", "must name an activation", m.head_activation)
