@@ -57,6 +57,11 @@ class ModelConfig:
     init_action_mean: float = 0.0
     """Initial mean action (the actor's output bias). 2 / thrust_to_weight - 1 (0.053 for the Crazyflie)
     is the hover command: the untrained policy then commands hover thrust on average (0 gives 0.95 g)."""
+    body_frame_obs: bool = False
+    """Give the network the observation in the drone's body frame (world vectors v -> R_i^T v, neighbour
+    rotations -> R_i^T R_j, R_i kept): a rotor command depends on body-frame quantities, which a small
+    world-frame MLP must otherwise learn as products of its inputs. For deepsets / kattention / mlp; the
+    SE(3) encoders canonicalize by R_i themselves. Not in the paper (False)."""
     init_actor_out_scale: float = 1.0
     """Multiplies the Xavier-uniform init of the actor's last layer (1 = the paper). 0.01 (PPO practice)
     makes the untrained policy command ``init_action_mean`` in every state instead of a random state-dependent
