@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
+import threading
 from collections import deque
 from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
 
@@ -175,5 +177,11 @@ def init_local_ray(num_cpus: Optional[int] = None) -> None:
     # Ray starts its workers at niceness 15, below the learner (the driver): on a busy laptop the rollout
     # actors would then starve while the learner waits for them. Sampling is half of the job: same priority.
     os.environ.setdefault("RAY_worker_niceness", "0")
+    # ray.init replaces the driver's SIGTERM handler with one that exits at once; keep the caller's
+    # (the launcher turns SIGTERM into a final checkpoint and a clean exit).
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    sigterm = signal.getsignal(signal.SIGTERM) if in_main_thread else None
     ray.init(num_cpus=num_cpus or os.cpu_count(), _node_ip_address="127.0.0.1", include_dashboard=False,
              log_to_driver=True, configure_logging=False)
+    if callable(sigterm):
+        signal.signal(signal.SIGTERM, sigterm)
