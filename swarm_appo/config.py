@@ -183,9 +183,11 @@ class TrainConfig:
 # The quickstart setting (load_config(None)): what differs from the defaults above.
 # configs/quickstart.yaml states the same values; a test keeps the two equal.
 QUICKSTART: Dict[str, Any] = {
-    "env": {"num_agents": 8, "scenario": "static_same_goal"},
+    "env": {"num_agents": 8, "scenario": "static_same_goal", "respawn_on_floor": True,
+            "reward": {"crash": 2.0, "tilt": 1.0}},
     "model": {"encoder": "deepsets", "encoder_kwargs": {"hidden": 64, "out_dim": 64}, "head_hidden": 64,
-              "normalize_obs": True, "init_action_mean": 0.053},
+              "normalize_obs": True, "body_frame_obs": True, "init_action_mean": 0.053,
+              "init_actor_out_scale": 0.01, "init_log_std": -2.0},
     "algo": {"batch_size": 2048, "num_epochs": 2, "lr": 3e-4},
     "runner": {"num_workers": 0, "envs_per_worker": 16, "total_agent_steps": 10_000_000, "time_limit_s": 480.0,
                "checkpoint_every_s": 120.0, "name": "quickstart"},
