@@ -189,7 +189,7 @@ QUICKSTART: Dict[str, Any] = {
               "normalize_obs": True, "body_frame_obs": True, "init_action_mean": 0.053,
               "init_actor_out_scale": 0.01, "init_log_std": -2.0},
     "algo": {"batch_size": 2048, "num_epochs": 2, "lr": 3e-4},
-    "runner": {"num_workers": 0, "envs_per_worker": 16, "total_agent_steps": 10_000_000, "time_limit_s": 480.0,
+    "runner": {"num_workers": 0, "envs_per_worker": 16, "total_agent_steps": 10_000_000, "time_limit_s": 420.0,
                "checkpoint_every_s": 120.0, "name": "quickstart"},
 }
 
