@@ -7,19 +7,17 @@ import csv
 import dataclasses
 import json
 import math
+import statistics
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 from encoders.testing import TINY_OPTIONS
 from quad_env import ObsLayout
 from swarm_appo import evaluate
-from swarm_appo.checkpoint import save_checkpoint
-from swarm_appo.config import config_to_dict, load_config
 from swarm_appo.eval_tables import EpisodeGroup, table1_rows, table2_rows, to_csv, to_markdown
-from swarm_appo.model import model_factory
+from swarm_appo.testing import untrained_checkpoint
 
 
 @pytest.fixture(autouse=True)
@@ -91,16 +89,10 @@ def test_table2_pools_the_scenarios_of_each_swarm_size():
 
 # --------------------------------------------------------------------------- the command line
 def tiny_checkpoint(root: Path, name: str, encoder: str = "deepsets", num_agents: int = 3, seed: int = 0) -> Path:
-    """An untrained tiny policy saved as a run's checkpoint (what the trainer writes)."""
-    cfg = load_config(None, [f"env.num_agents={num_agents}", "env.num_neighbors=2", "env.episode_duration=0.3",
-                             f"model.encoder={encoder}", f"runner.name={name}", "model.head_hidden=16",
-                             f"runner.seed={seed}"])
-    cfg.model.encoder_kwargs = dict(TINY_OPTIONS[encoder])
-    torch.manual_seed(seed)
-    model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)()
-    state = {"format": 1, "learner": {"model": model.state_dict()}, "agent_steps": 1000, "config": config_to_dict(cfg)}
-    save_checkpoint(root / name, state, step=1000)
-    return root / name
+    """An untrained tiny policy saved as a run's checkpoint (what the trainer writes); 0.3 s episodes."""
+    overrides = [f"env.num_agents={num_agents}", "env.num_neighbors=2", "env.episode_duration=0.3",
+                 f"model.encoder={encoder}", "model.head_hidden=16"]
+    return untrained_checkpoint(root, name, overrides, TINY_OPTIONS[encoder], seed)
 
 
 def cli(*args) -> int:
@@ -131,8 +123,8 @@ def test_serial_and_ray_give_the_same_table_and_the_episodes_of_the_seeds(tmp_pa
     policy = evaluate.model_policy(model)  # one torch thread, as the CLI (fixture)
     direct = evaluate.run_episodes(env, policy, 2, 11) + evaluate.run_episodes(env, policy, 1, evaluate.task_seed(11, 1))
     returns = [e["return"] for e in direct]
-    assert float(rows[1]["reward_mean"]) == pytest.approx(np.mean(returns), rel=1e-12)
-    assert float(rows[1]["reward_std"]) == pytest.approx(np.std(returns), rel=1e-12)
+    assert float(rows[1]["reward_mean"]) == pytest.approx(statistics.fmean(returns), rel=1e-12)
+    assert float(rows[1]["reward_std"]) == pytest.approx(statistics.pstdev(returns), rel=1e-9)
     records = [json.loads(line) for line in (tmp_path / "serial" / "episodes.jsonl").read_text().splitlines()]
     swap = [r for r in records if r["eval_scenario"] == "swap_goals"]
     assert [r["episode"] for r in swap] == [0, 1, 2] and [r["return"] for r in swap] == returns
