@@ -11,7 +11,6 @@ import statistics
 from pathlib import Path
 
 import pytest
-import torch
 
 from encoders.testing import TINY_OPTIONS
 from quad_env import ObsLayout
@@ -20,13 +19,7 @@ from swarm_appo.eval_tables import EpisodeGroup, table1_rows, table2_rows, to_cs
 from swarm_appo.testing import untrained_checkpoint
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Tiny batches: a second OpenMP thread only waits (very long on a loaded machine). The CLI does the same."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 
 
 # --------------------------------------------------------------------------- the table writer

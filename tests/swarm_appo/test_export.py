@@ -17,12 +17,7 @@ from swarm_appo.testing import untrained_checkpoint
 K = 3
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 
 
 def tiny_model(encoder: str, seed: int = 0, **kwargs) -> ActorCritic:
