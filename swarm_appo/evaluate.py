@@ -34,7 +34,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from quad_env import EnvConfig, VecQuadEnv
+from quad_env import EnvConfig, ObsLayout, VecQuadEnv
 from quad_env.render import Episode, SwarmRecorder
 from quad_env.scenarios import SCENARIO_REGISTRY, SCENARIOS
 
@@ -112,13 +112,19 @@ def compare_with_random(env_cfg: EnvConfig, model: torch.nn.Module, num_episodes
 
 
 # ----------------------------------------------------------------------------------------------- checkpoints
-def load_policy_from_checkpoint(path: str):
-    """(TrainConfig, model) from a checkpoint file or a run directory (its latest valid checkpoint)."""
-    cfg, model, _ = _load_checkpoint_model(path)
-    return cfg, model
+@dataclass
+class LoadedPolicy:
+    """A checkpoint's policy: its run config, the model with its weights, and how to build another."""
+
+    cfg: object  # swarm_appo.config.TrainConfig
+    model: torch.nn.Module  # encoders.ActorCritic, weights loaded
+    factory: Callable[[], torch.nn.Module]  # picklable constructor of the same (untrained) model
+    agent_steps: int  # training steps of the checkpoint
+    run_name: str
 
 
-def _load_checkpoint_model(path: str):
+def load_checkpoint_policy(path: str) -> LoadedPolicy:
+    """The policy of a checkpoint file, or of a run directory's latest valid checkpoint."""
     from quad_env import ObsLayout
     from swarm_appo.checkpoint import load_checkpoint, load_latest_checkpoint
     from swarm_appo.config import config_from_dict
@@ -136,7 +142,14 @@ def _load_checkpoint_model(path: str):
     factory = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)
     model = factory()
     model.load_state_dict(state["learner"]["model"])
-    return cfg, model, (factory, int(state.get("agent_steps", 0)))
+    return LoadedPolicy(cfg, model, factory, int(state.get("agent_steps", 0)),
+                        cfg.runner.name or run_dir_of(path).name)
+
+
+def load_policy_from_checkpoint(path: str):
+    """(TrainConfig, model) from a checkpoint file or a run directory (its latest valid checkpoint)."""
+    loaded = load_checkpoint_policy(path)
+    return loaded.cfg, loaded.model
 
 
 def run_dir_of(path: str) -> Path:
@@ -155,32 +168,29 @@ class PolicySpec:
     env: EnvConfig  # the environment it was trained in
     factory: Optional[Callable[[], torch.nn.Module]] = None  # picklable model constructor
     weights: Optional[Dict[str, torch.Tensor]] = None  # its state dict
-    layout: object = None  # the model's ObsLayout
+    layout: Optional[ObsLayout] = None  # the observations it was trained on
     source: str = ""  # checkpoint path
     step: int = 0  # agent steps of the checkpoint
     seed: int = 0  # runner.seed of the run
 
 
-def load_policy_spec(path: str) -> PolicySpec:
-    cfg, model, (factory, step) = _load_checkpoint_model(path)
-    label = f"{cfg.runner.name or run_dir_of(path).name} ({cfg.model.encoder})"
-    return PolicySpec(label, cfg.env, factory, model.state_dict(), model.layout, str(path), step, cfg.runner.seed)
+def load_policy_specs(paths: Sequence[str]) -> List[PolicySpec]:
+    """One spec per checkpoint, labelled ``run (encoder)``; labels that clash (two checkpoints of one
+    run) get the checkpoint's step, ``run@step (encoder)``, and then a counter."""
+    loaded = [load_checkpoint_policy(str(p)) for p in paths]
+    labels = [f"{x.run_name} ({x.cfg.model.encoder})" for x in loaded]
+    labels = [f"{x.run_name}@{x.agent_steps} ({x.cfg.model.encoder})" if labels.count(label) > 1 else label
+              for x, label in zip(loaded, labels)]
+    for label in set(labels):
+        same = [i for i, other in enumerate(labels) if other == label]
+        for n, i in enumerate(same if len(same) > 1 else []):
+            labels[i] = f"{label} #{n + 1}"
+    return [PolicySpec(label, x.cfg.env, x.factory, x.model.state_dict(), x.model.layout, str(p), x.agent_steps,
+                       x.cfg.runner.seed) for label, x, p in zip(labels, loaded, paths)]
 
 
 def random_spec(env: EnvConfig) -> PolicySpec:
     return PolicySpec("random actions", env, source="uniform in [-1, 1]")
-
-
-def unique_labels(specs: Sequence[PolicySpec]) -> None:
-    """Make labels distinct: the checkpoint step, then a counter, are added to labels that clash."""
-    def clashing():
-        seen = [s.label for s in specs]
-        return [s for s in specs if seen.count(s.label) > 1]
-    for s in clashing():
-        name, _, encoder = s.label.rpartition(" (")
-        s.label = f"{name}@{s.step} ({encoder}"
-    for i, s in enumerate(clashing()):
-        s.label = f"{s.label} #{i + 1}"
 
 
 # ----------------------------------------------------------------------------------------------- tasks
@@ -238,10 +248,12 @@ def check_layouts(specs: Sequence[PolicySpec], num_agents: Sequence[int], scenar
     """Every checkpoint must see the observation layout it was trained on. Building the environments here
     also compiles the numba kernels once, so the workers load them from the on-disk cache."""
     for spec in specs:
+        if spec.layout is None:  # random actions: no observations read
+            continue
         for n in num_agents:
             for s in scenarios:
                 layout = VecQuadEnv(eval_env(spec, n, s), num_envs=1, seed=0).layout
-                if spec.layout is not None and layout != spec.layout:
+                if layout != spec.layout:
                     raise ValueError(
                         f"checkpoint {spec.source} was trained on observations {spec.layout!r}, but scenario "
                         f"{s!r} with {n} drones gives {layout!r}; a policy carries over to any swarm size, "
@@ -400,8 +412,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)  # one core per task, in-process as on the Ray actors (same numbers)
     try:
         try:
-            specs = [load_policy_spec(path) for path in args.checkpoint]
-            unique_labels(specs)
+            specs = load_policy_specs(args.checkpoint)
             trained_n = sorted({s.env.num_agents for s in specs})
             if args.num_agents is None and len(trained_n) > 1:
                 raise ValueError(f"the checkpoints were trained with different swarm sizes {trained_n}: "

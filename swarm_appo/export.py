@@ -269,13 +269,14 @@ def export_actor(model: nn.Module, out_dir, env_cfg, formats: Sequence[str] = FO
 def export_checkpoint(checkpoint: str, out_dir, formats: Sequence[str] = FORMATS,
                       clip_actions: bool = False) -> Dict[str, Path]:
     """``export_actor`` of a checkpoint file or run directory (its latest valid checkpoint)."""
-    from swarm_appo.evaluate import _load_checkpoint_model, run_dir_of
+    from swarm_appo.evaluate import load_checkpoint_policy
 
-    cfg, model, (_, step) = _load_checkpoint_model(checkpoint)
-    provenance = {"checkpoint": os.path.abspath(checkpoint), "agent_steps": step,
-                  "run": cfg.runner.name or run_dir_of(checkpoint).name, "trained_num_agents": cfg.env.num_agents,
-                  "trained_scenario": cfg.env.scenario, "sensing_radius": cfg.env.sensing_radius}
-    return export_actor(model, out_dir, cfg.env, formats, clip_actions, provenance)
+    loaded = load_checkpoint_policy(checkpoint)
+    env = loaded.cfg.env
+    provenance = {"checkpoint": os.path.abspath(checkpoint), "agent_steps": loaded.agent_steps,
+                  "run": loaded.run_name, "trained_num_agents": env.num_agents, "trained_scenario": env.scenario,
+                  "sensing_radius": env.sensing_radius}
+    return export_actor(loaded.model, out_dir, env, formats, clip_actions, provenance)
 
 
 def main(argv=None) -> int:

@@ -178,7 +178,7 @@ def test_bad_requests_get_clear_errors(tmp_path, capsys):
 
 
 def test_a_policy_meets_only_the_observation_layout_it_was_trained_on(tmp_path):
-    spec = evaluate.load_policy_spec(str(tiny_checkpoint(tmp_path, "q")))
+    spec, = evaluate.load_policy_specs([tiny_checkpoint(tmp_path, "q")])
     evaluate.check_layouts([spec], [1, 3, 20], ["static_same_goal"])  # any N: K slots padded and masked
     spec.layout = ObsLayout(4, "full")  # as if trained with K = 4 neighbour slots
     with pytest.raises(ValueError, match="num_neighbors=4.*num_neighbors=2"):
@@ -186,7 +186,7 @@ def test_a_policy_meets_only_the_observation_layout_it_was_trained_on(tmp_path):
 
 
 def test_sampled_actions_are_seeded_and_differ_from_the_mean(tmp_path):
-    spec = evaluate.load_policy_spec(str(tiny_checkpoint(tmp_path, "q")))
+    spec, = evaluate.load_policy_specs([tiny_checkpoint(tmp_path, "q")])
     kw = dict(specs=[spec], num_agents=[3], scenarios=["static_same_goal"], episodes=2, episodes_per_task=2,
               seed=5, pictures=False)
     stochastic = evaluate.plan_tasks(**kw, deterministic=False)[0]
@@ -194,3 +194,12 @@ def test_sampled_actions_are_seeded_and_differ_from_the_mean(tmp_path):
     run = lambda t: [e["return"] for e in evaluate.run_task(t, spec.factory, spec.weights).episodes]  # noqa: E731
     assert run(stochastic) == run(stochastic)
     assert run(stochastic) != run(mean)
+
+
+def test_two_checkpoints_of_one_run_are_told_apart_by_their_step(tmp_path):
+    tiny_checkpoint(tmp_path, "q")  # step 1000
+    run = untrained_checkpoint(tmp_path, "q", ["env.num_neighbors=2"], TINY_OPTIONS["deepsets"], agent_steps=2000)
+    first, second = sorted((run / "checkpoints").glob("ckpt_*.pt"))
+    specs = evaluate.load_policy_specs([first, second, second])
+    assert [s.label for s in specs] == ["q@1000 (deepsets)", "q@2000 (deepsets) #1", "q@2000 (deepsets) #2"]
+    assert [s.step for s in specs] == [1000, 2000, 2000]
