@@ -446,7 +446,7 @@ def main(argv=None) -> int:
     report = eval_report.write_report(out, setup, results, [s.label for s in specs])
     print(report.text)
     eval_report.log_to_wandb(out, report, setup, mode=args.wandb_mode, project=args.wandb_project)
-    print(f"written to {out}: {', '.join(sorted(p.name for p in report.files))}")
+    print(f"written to {out}: {', '.join(sorted(str(p.relative_to(out)) for p in report.files))}")
     return 0
 
 

@@ -13,13 +13,13 @@ from swarm_appo.model import model_factory
 
 
 def untrained_checkpoint(root, name: str, overrides: Sequence[str] = (), encoder_kwargs: Optional[dict] = None,
-                         seed: int = 0, agent_steps: int = 1000) -> Path:
-    """Build the model of ``load_config(None, overrides)`` (the quickstart config plus ``key=value``
+                         seed: int = 0, agent_steps: int = 1000, config: Optional[str] = None) -> Path:
+    """Build the model of ``load_config(config, overrides)`` (default: the quickstart config; ``key=value``
     overrides; ``encoder_kwargs`` replaces the encoder's options), initialised from ``seed``, and save it
     as ``root/name/checkpoints/ckpt_<agent_steps>.pt``. Returns the run directory ``root/name``."""
     from swarm_appo.trainer import CHECKPOINT_FORMAT
 
-    cfg = load_config(None, [f"runner.name={name}", f"runner.seed={seed}", *overrides])
+    cfg = load_config(config, [f"runner.name={name}", f"runner.seed={seed}", *overrides])
     if encoder_kwargs is not None:
         cfg.model.encoder_kwargs = dict(encoder_kwargs)
     torch.manual_seed(seed)
