@@ -27,6 +27,7 @@ stable ``argsort`` (ONNX TopK, whose ties keep index order).
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import os
 import warnings
@@ -224,7 +225,7 @@ def export_actor(model: nn.Module, out_dir, env_cfg, formats: Sequence[str] = FO
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     layout = model.layout
-    actor = DeterministicActor(model.to("cpu").eval(), clip_actions).eval()
+    actor = copy.deepcopy(DeterministicActor(model, clip_actions)).cpu().eval()  # the caller's model untouched
     rng = np.random.default_rng(seed)
     K = layout.num_neighbors
     example = torch.as_tensor(random_obs(layout, 8, rng, num_real=[K] * 8), dtype=torch.float32)  # [8, D]
