@@ -380,6 +380,7 @@ def main(argv=None) -> int:
     import time
 
     from swarm_appo import eval_report
+    from swarm_appo.checkpoint import CheckpointCorruptError
 
     p = argparse.ArgumentParser(prog="swarm-eval", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -427,7 +428,7 @@ def main(argv=None) -> int:
             if args.random_baseline:
                 specs.append(random_spec(specs[0].env))
             check_layouts(specs, num_agents, scenarios)
-        except (ValueError, FileNotFoundError) as exc:
+        except (ValueError, FileNotFoundError, CheckpointCorruptError) as exc:
             p.error(str(exc))
         seed = default_eval_seed(specs[0].seed) if args.seed is None else args.seed
         out = Path(args.out) if args.out else run_dir_of(args.checkpoint[0]) / "eval"
