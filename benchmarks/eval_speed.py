@@ -63,14 +63,15 @@ def measure(model_name: str, num_agents: int, episodes: int, budget_s: float) ->
 
     window = dataclasses.replace(env_cfg, episode_duration=steps * env_cfg.control_dt)
     inference[0] = 0.0
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     stats, _ = fly_episodes(window, timed_policy, episodes, seed=2)
-    elapsed = time.perf_counter() - start
+    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
     assert len(stats) == episodes and stats[0]["length"] == steps
     agent_steps = episodes * num_agents * steps
     sps = agent_steps / elapsed
     return {"model": model_name, "encoder": cfg.model.encoder, "N": num_agents, "E": episodes, "steps": steps,
             "full": steps == full_steps, "elapsed": elapsed, "sps": sps, "inference_share": inference[0] / elapsed,
+            "cpu_share": cpu / elapsed,
             "episodes_per_s": sps / (num_agents * full_steps), "full_steps": full_steps}
 
 
@@ -104,12 +105,12 @@ def main(argv=None) -> None:
     load_after = load_average()
 
     lines = ["| model (encoder) | N | E | drones per forward | steps timed | agent-steps/s | µs / agent-step | "
-             "inference share | episodes/s per core | s per episode |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "inference share | CPU share | episodes/s per core | s per episode |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         timed = f"{r['steps']} (full)" if r["full"] else f"{r['steps']} of {r['full_steps']}"
         lines.append(f"| {r['model']} ({r['encoder']}) | {r['N']} | {r['E']} | {r['N'] * r['E']:,} | {timed} | "
-                     f"{r['sps']:,.0f} | {1e6 / r['sps']:.1f} | {r['inference_share']:.0%} | "
+                     f"{r['sps']:,.0f} | {1e6 / r['sps']:.1f} | {r['inference_share']:.0%} | {r['cpu_share']:.0%} | "
                      f"{r['episodes_per_s']:.3g} | {1 / r['episodes_per_s']:.3g} |")
     section = "\n".join([
         f"## eval_speed — {datetime.datetime.now().isoformat(timespec='seconds')}",
@@ -122,7 +123,8 @@ def main(argv=None) -> None:
         "- evaluation task of swarm_appo.evaluate: E episodes in one VecQuadEnv, one batched forward of the mean "
         "action for E x N drones per step; static_same_goal, thrust and sensor noise on, untrained weights; "
         "episodes of 15 s (1500 steps); 'steps timed' < 1500: the first steps of the episodes, and "
-        "episodes/s = agent-steps/s / (N x 1500)",
+        "episodes/s = agent-steps/s / (N x 1500); CPU share = this process's CPU time / wall time (below 100%: "
+        "the core was shared)",
         "",
         *lines,
     ])
