@@ -126,7 +126,7 @@ def main(argv=None) -> None:
         f"load average before: {load_before}, after: {load_after}",
         "- evaluation task of swarm_appo.evaluate: E episodes in one VecQuadEnv, one batched forward of the mean "
         "action for E x N drones per step; static_same_goal, thrust and sensor noise on, untrained weights; "
-        "episodes of 15 s (1500 steps); 'steps timed' < 1500: the first steps of the episodes, and "
+        "episodes of 15 s (1500 steps); 'steps timed' < 1500: the first steps of the episodes; "
         "CPU share = this process's CPU time / wall time (below 100%: the core was shared); per core = per second "
         "of CPU time; episodes/s per core = agent-steps per CPU-s / (N x 1500)",
         "",
