@@ -36,15 +36,18 @@ class BodyFrameInput(nn.Module):
                 mat_idx += range(f.start + off, f.stop + off)
         self.register_buffer("vec_idx", torch.tensor(vec_idx, dtype=torch.long), persistent=False)
         self.register_buffer("mat_idx", torch.tensor(mat_idx, dtype=torch.long), persistent=False)
+        # Output column c reads column perm[c] of [obs | rotated vectors | rotated matrices]: one gather, no
+        # in-place index writes (which the ONNX exporter mistranslates).
+        perm = list(range(layout.dim))
+        for k, c in enumerate(vec_idx + mat_idx):
+            perm[c] = layout.dim + k
+        self.register_buffer("perm", torch.tensor(perm, dtype=torch.long), persistent=False)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         B = obs.shape[0]
         R = obs[:, self.rot_slice].reshape(B, 3, 3)  # [B, 3, 3] body -> world
-        out = obs.clone()
-        if self.vec_idx.numel():
-            v = obs[:, self.vec_idx].reshape(B, -1, 3)  # [B, V, 3]
-            out[:, self.vec_idx] = (v @ R).reshape(B, -1)  # rows v^T R = (R^T v)^T
-        if self.mat_idx.numel():
-            M = obs[:, self.mat_idx].reshape(B, -1, 3, 3)  # [B, Q, 3, 3]
-            out[:, self.mat_idx] = (R.transpose(1, 2).unsqueeze(1) @ M).reshape(B, -1)
-        return out
+        v = obs[:, self.vec_idx].reshape(B, -1, 3)  # [B, V, 3]
+        v_body = (v @ R).reshape(B, -1)  # rows v^T R = (R^T v)^T
+        M = obs[:, self.mat_idx].reshape(B, -1, 3, 3)  # [B, Q, 3, 3]
+        m_body = (R.transpose(1, 2).unsqueeze(1) @ M).reshape(B, -1)  # R^T M
+        return torch.cat([obs, v_body, m_body], dim=1)[:, self.perm]

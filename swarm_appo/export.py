@@ -68,12 +68,16 @@ class DeterministicActor(nn.Module):
 
     def __init__(self, model: nn.Module, clip_actions: bool = False):
         super().__init__()
+        self.body_frame = getattr(model, "body_frame", None)  # None unless trained with model.body_frame_obs
         self.obs_norm = model.obs_norm  # None when the policy was trained without it
         self.encoder = model.actor_encoder
         self.head = model.actor_head
         self.clip_actions = clip_actions
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        # The same input preparation as ActorCritic: body frame (optional), then per-field scaling.
+        if self.body_frame is not None:
+            obs = self.body_frame(obs)
         if self.obs_norm is not None:
             obs = self.obs_norm(obs)
         actions = self.head(self.encoder(obs))  # [B, 4]
@@ -230,8 +234,9 @@ def export_actor(model: nn.Module, out_dir, env_cfg, formats: Sequence[str] = FO
     K = layout.num_neighbors
     example = torch.as_tensor(random_obs(layout, 8, rng, num_real=[K] * 8), dtype=torch.float32)  # [8, D]
     check = random_obs(layout, 13, rng).astype(np.float32)  # [13, D], 0..K real neighbours
-    with torch.no_grad():
-        expected = actor(torch.from_numpy(check)).numpy()  # [13, 4]
+    with torch.no_grad():  # checked against the policy itself, not the wrapper: catches a wrapper that drifts
+        expected = copy.deepcopy(model).cpu().eval().policy(torch.from_numpy(check))[0]  # [13, 4]
+        expected = (expected.clamp(-1.0, 1.0) if clip_actions else expected).numpy()
 
     paths, errors = {}, {}
     for fmt in dict.fromkeys(formats):
@@ -258,7 +263,8 @@ def export_actor(model: nn.Module, out_dir, env_cfg, formats: Sequence[str] = FO
         "observation": observation_contract(layout),
         "action": action_contract(env_cfg, clip_actions),
         "policy": {**(provenance or {}), "encoder": model.config["encoder"],
-                   "encoder_kwargs": model.config["encoder_kwargs"], "normalize_obs": model.obs_norm is not None},
+                   "encoder_kwargs": model.config["encoder_kwargs"], "normalize_obs": model.obs_norm is not None,
+                   "body_frame_obs": getattr(model, "body_frame", None) is not None},
         "check": {"max_abs_error": errors, "batch": len(check), "tolerance": VERIFY_TOLERANCE},
         "exported_with": {"torch": torch.__version__, "onnx_opset": ONNX_OPSET},
     }
