@@ -16,6 +16,7 @@ from torch import nn
 
 from quad_env.obs_layout import ObsLayout
 
+from .body_frame import BodyFrameInput
 from .common import mlp, xavier_init_
 from .obs_norm import FieldScaleNorm
 from .registry import make_encoder
@@ -44,22 +45,27 @@ class ActorCritic(nn.Module):
         normalize_obs: scale each observation field by its running RMS norm first (``FieldScaleNorm``,
             equivariance-preserving); its statistics change only through ``obs_norm.update``.
         init_action_mean: initial mean action (the bias of the actor's last layer), e.g. the hover command.
+        body_frame_obs: feed the network the observation in the drone's body frame (``BodyFrameInput``).
+        init_actor_out_scale: multiplies the Xavier-uniform weights of the actor's last layer; small values
+            (PPO practice: 0.01) start the policy at a near-constant mean action ``init_action_mean``.
     """
 
     def __init__(self, layout: ObsLayout, encoder: str = "deepsets", encoder_kwargs: Optional[dict] = None,
                  share_encoder: bool = False, action_dim: int = 4, head_hidden: int = 256,
                  head_activation: str = "tanh", init_log_std: float = 0.0, normalize_obs: bool = False,
-                 init_action_mean: float = 0.0):
+                 init_action_mean: float = 0.0, init_actor_out_scale: float = 1.0, body_frame_obs: bool = False):
         super().__init__()
         encoder_kwargs = dict(encoder_kwargs or {})
         self.layout = layout
         self.config = dict(encoder=encoder, encoder_kwargs=encoder_kwargs, share_encoder=share_encoder,
                            action_dim=action_dim, head_hidden=head_hidden, head_activation=head_activation,
                            init_log_std=init_log_std, normalize_obs=normalize_obs,
-                           init_action_mean=init_action_mean)
+                           init_action_mean=init_action_mean, init_actor_out_scale=init_actor_out_scale,
+                           body_frame_obs=body_frame_obs)
         self.share_encoder = share_encoder
         self.action_dim = action_dim
         self.obs_norm = FieldScaleNorm(layout) if normalize_obs else None
+        self.body_frame = BodyFrameInput(layout) if body_frame_obs else None
         self.actor_encoder = make_encoder(encoder, layout, **encoder_kwargs)
         self.critic_encoder = None if share_encoder else make_encoder(encoder, layout, **encoder_kwargs)
         out_dim = self.actor_encoder.out_dim
@@ -67,10 +73,14 @@ class ActorCritic(nn.Module):
         self.critic_head = xavier_init_(mlp([out_dim, head_hidden, 1], head_activation, last_act=False))
         with torch.no_grad():
             self.actor_head[-1].bias.fill_(float(init_action_mean))
+            self.actor_head[-1].weight.mul_(float(init_actor_out_scale))
         self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
 
     # ------------------------------------------------------------------ pieces
     def _normalize(self, obs: torch.Tensor) -> torch.Tensor:
+        # The per-field scales are norms, which a rotation into the body frame leaves unchanged.
+        if self.body_frame is not None:
+            obs = self.body_frame(obs)
         return obs if self.obs_norm is None else self.obs_norm(obs)
 
     def _features(self, obs: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:

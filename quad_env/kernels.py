@@ -29,30 +29,32 @@ import numpy as np
 from numba import njit
 
 from quad_env.params import (
-    F_ARM, F_C_ACTION, F_C_COLL, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
+    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
     I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
-    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE,
+    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS,
 )
+
 from quad_env.rng import normal_from, normal_pair, uniform
 
 # Episode accumulator columns (float64 [E, NUM_ACC]).
 ACC_RETURN = 0  # sum over steps and agents of the reward
-ACC_TERMS = 1  # 5 columns: per-term sums, order of params.REWARD_TERMS
-ACC_COLLISIONS = 6  # new drone-drone contacts (pairs)
-ACC_ROOM = 7  # new floor / wall / ceiling contacts (drones)
-ACC_DIST_TAIL = 8  # sum over the last-5-s steps of the mean distance to goal
-ACC_TAIL_STEPS = 9  # number of steps in that sum
-ACC_DIST_FINAL = 10  # mean distance to goal after the latest step
-ACC_DIST_TAIL1 = 11  # sum over the last-1-s steps of the mean distance to goal
-ACC_TAIL1_STEPS = 12
-ACC_DIST_TAIL3 = 13  # sum over the last-3-s steps of the mean distance to goal
-ACC_TAIL3_STEPS = 14
-ACC_COLL_GRACE = 15  # new drone-drone contacts (pairs) after the grace period
-ACC_ROOM_GRACE = 16  # new room contacts (drones) after the grace period
-NUM_ACC = 17
+ACC_TERMS = 1  # NUM_TERMS (8) columns: per-term sums, order of params.REWARD_TERMS
+ACC_COLLISIONS = 9  # new drone-drone contacts (pairs)
+ACC_ROOM = 10  # new floor / wall / ceiling contacts (drones)
+ACC_DIST_TAIL = 11  # sum over the last-5-s steps of the mean distance to goal
+ACC_TAIL_STEPS = 12  # number of steps in that sum
+ACC_DIST_FINAL = 13  # mean distance to goal after the latest step
+ACC_DIST_TAIL1 = 14  # sum over the last-1-s steps of the mean distance to goal
+ACC_TAIL1_STEPS = 15
+ACC_DIST_TAIL3 = 16  # sum over the last-3-s steps of the mean distance to goal
+ACC_TAIL3_STEPS = 17
+ACC_COLL_GRACE = 18  # new drone-drone contacts (pairs) after the grace period
+ACC_ROOM_GRACE = 19  # new room contacts (drones) after the grace period
+ACC_RESPAWNS = 20  # drones respawned after touching the floor (env.respawn_on_floor)
+NUM_ACC = 21
 
 # Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success and IColR metrics.
 SUCCESS_WINDOW = 5  # a drone has reached its goal when its mean distance over this many steps ...
@@ -412,6 +414,7 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
     dt = fp[F_CTRL_DT]
     c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
     c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
+    c_floor, c_tilt, floor_z = fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z]
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -513,12 +516,16 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
             r_prox = -c_prox * prox[a]
             r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
             r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
+            r_floor = -c_floor if zi <= floor_z else 0.0
+            r_tilt = -c_tilt * (1.0 - rot[i, 2, 2])
             terms[0, i] = r_pos
             terms[1, i] = r_coll
             terms[2, i] = r_prox
             terms[3, i] = r_omega
             terms[4, i] = r_act
-            rew[i] = r_pos + r_coll + r_prox + r_omega + r_act
+            terms[5, i] = r_floor
+            terms[6, i] = r_tilt
+            rew[i] = r_pos + r_coll + r_prox + r_omega + r_act + r_floor + r_tilt
     return dist_sum / n_agents
 
 
@@ -609,7 +616,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
             done[e] = True
             for a in range(n_agents):
                 rew[base + a] = 0.0
-                for t in range(5):
+                for t in range(KERNEL_TERMS):
                     terms[t, base + a] = 0.0
             n_done += 1
             continue
@@ -622,7 +629,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
         for a in range(n_agents):
             i = base + a
             acc[e, ACC_RETURN] += rew[i]
-            for t in range(5):
+            for t in range(KERNEL_TERMS):
                 acc[e, ACC_TERMS + t] += terms[t, i]
         acc[e, ACC_DIST_FINAL] = mean_dist
         if step_count[e] > ip[I_EP_STEPS] - ip[I_TAIL_STEPS]:
@@ -682,51 +689,75 @@ def refresh_contacts_kernel(selected, pos, contact, fp, ip):
                 contact[e, a, b] = 1 if d2 <= cd2 else 0
 
 
-@njit(cache=True)
-def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
-                 spawn_half, spawn_min_z, spawn_min_sep):
-    """Start a new episode for the selected swarms: drones at rest, motors off, random yaw, positions
-    uniform in the box ``center +- spawn_half`` (z range cut to [spawn_min_z, ceiling]), at least
-    ``spawn_min_sep`` apart (rejection sampling, 100 tries per drone, then accepted anyway)."""
-    n_agents = ip[I_N]
+@njit(cache=True, inline="always")
+def _spawn_drone(i, e, base, n_agents, check_below, center, pos, vel, rot, omega, motor, ou, room_contact, rng,
+                 fp, spawn_half, spawn_min_z, spawn_min_sep):
+    """Put drone ``i`` of swarm ``e`` at rest, motors off, random yaw, at a uniform point of the box
+    ``center[e] +- spawn_half`` (z cut to [spawn_min_z, ceiling]) at least ``spawn_min_sep`` from the
+    swarm's drones ``base .. base + check_below - 1`` other than ``i`` (rejection sampling, 100 tries,
+    then accepted anyway)."""
     half = fp[F_ROOM_HALF]
     height = fp[F_ROOM_H]
     sep2 = spawn_min_sep * spawn_min_sep
+    z_lo = max(center[e, 2] - spawn_half, spawn_min_z)
+    z_hi = min(max(center[e, 2] + spawn_half, z_lo), height)
+    x, y, z = 0.0, 0.0, 0.0
+    for _ in range(100):
+        x = min(max(center[e, 0] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
+        y = min(max(center[e, 1] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
+        z = z_lo + (z_hi - z_lo) * uniform(rng, e)
+        ok = True
+        for b in range(check_below):
+            j = base + b
+            if j == i:
+                continue
+            d2 = (pos[j, 0] - x) ** 2 + (pos[j, 1] - y) ** 2 + (pos[j, 2] - z) ** 2
+            if d2 < sep2:
+                ok = False
+                break
+        if ok:
+            break
+    pos[i, 0], pos[i, 1], pos[i, 2] = x, y, z
+    yaw = 2.0 * np.pi * uniform(rng, e)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2] = cy, -sy, 0.0
+    rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2] = sy, cy, 0.0
+    rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2] = 0.0, 0.0, 1.0
+    for k in range(3):
+        vel[i, k] = 0.0
+        omega[i, k] = 0.0
+    for k in range(4):
+        motor[i, k] = 0.0
+        ou[i, k] = 0.0
+    room_contact[i] = 0
+
+
+@njit(cache=True)
+def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
+                 spawn_half, spawn_min_z, spawn_min_sep):
+    """Start a new episode for the selected swarms: every drone spawned by ``_spawn_drone`` in order,
+    kept ``spawn_min_sep`` away from the drones spawned before it."""
+    n_agents = ip[I_N]
     for e in range(selected.shape[0]):
         if not selected[e]:
             continue
         base = e * n_agents
-        z_lo = max(center[e, 2] - spawn_half, spawn_min_z)
-        z_hi = min(max(center[e, 2] + spawn_half, z_lo), height)
         for a in range(n_agents):
-            i = base + a
-            x, y, z = 0.0, 0.0, 0.0
-            for _ in range(100):
-                x = min(max(center[e, 0] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
-                y = min(max(center[e, 1] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
-                z = z_lo + (z_hi - z_lo) * uniform(rng, e)
-                ok = True
-                for b in range(a):
-                    j = base + b
-                    d2 = (pos[j, 0] - x) ** 2 + (pos[j, 1] - y) ** 2 + (pos[j, 2] - z) ** 2
-                    if d2 < sep2:
-                        ok = False
-                        break
-                if ok:
-                    break
-            pos[i, 0], pos[i, 1], pos[i, 2] = x, y, z
-            yaw = 2.0 * np.pi * uniform(rng, e)
-            cy, sy = np.cos(yaw), np.sin(yaw)
-            rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2] = cy, -sy, 0.0
-            rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2] = sy, cy, 0.0
-            rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2] = 0.0, 0.0, 1.0
-            for k in range(3):
-                vel[i, k] = 0.0
-                omega[i, k] = 0.0
-            for k in range(4):
-                motor[i, k] = 0.0
-                ou[i, k] = 0.0
-            room_contact[i] = 0
+            _spawn_drone(base + a, e, base, n_agents, a, center, pos, vel, rot, omega, motor, ou, room_contact,
+                         rng, fp, spawn_half, spawn_min_z, spawn_min_sep)
+
+
+@njit(cache=True)
+def respawn_kernel(rows, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
+                   spawn_half, spawn_min_z, spawn_min_sep):
+    """Respawn the drones ``rows`` (int [R], ascending) mid-episode (``env.respawn_on_floor``): each one as
+    at an episode start, kept ``spawn_min_sep`` away from every other drone of its swarm."""
+    n_agents = ip[I_N]
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        e = i // n_agents
+        _spawn_drone(i, e, e * n_agents, n_agents, n_agents, center, pos, vel, rot, omega, motor, ou,
+                     room_contact, rng, fp, spawn_half, spawn_min_z, spawn_min_sep)
 
 
 @njit(cache=True)

@@ -45,7 +45,9 @@ F_C_PROX = 31
 F_PROX_DIST = 32
 F_C_OMEGA = 33
 F_C_ACTION = 34
-NUM_F = 35
+F_C_FLOOR = 35
+F_C_TILT = 36
+NUM_F = 37
 
 # ---------------------------------------------------------------- int parameters (int64 [NUM_I])
 I_N = 0  # drones per swarm
@@ -69,7 +71,8 @@ NUM_I = 16
 METRIC_GRACE_S = 1.5  # grace period of the collision metrics, s
 
 # Reward terms, in the order of the kernel's ``terms`` rows.
-REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action")
+REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash")
+KERNEL_TERMS = 7  # the step kernel writes the first 7 rows; "crash" is added by VecQuadEnv (floor contacts)
 
 
 def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
@@ -113,6 +116,8 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     f[F_PROX_DIST] = r.proximity_dist
     f[F_C_OMEGA] = r.omega
     f[F_C_ACTION] = r.action
+    f[F_C_FLOOR] = r.floor
+    f[F_C_TILT] = r.tilt
 
     i = np.zeros(NUM_I, np.int64)
     i[I_N] = cfg.num_agents

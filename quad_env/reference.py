@@ -44,7 +44,7 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
         state: dict of float64 arrays pos, vel, rot, omega, motor, goal (shapes as ``DroneState``).
         actions: [M, 4]; step_count: [E] control steps done before this one; contact: [E, N, N] (a < b).
     Returns:
-        new_state, obs [M, D] (float64), rew [M], terms [5, M], new_contact [E, N, N].
+        new_state, obs [M, D] (float64), rew [M], terms [KERNEL_TERMS = 7, M] (the step kernel's terms; "crash" is added by VecQuadEnv), new_contact [E, N, N].
     """
     p, rc = cfg.physics, cfg.reward
     N, K = cfg.num_agents, cfg.num_neighbors
@@ -167,6 +167,8 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
         -rc.proximity * ctrl_dt * prox,
         -rc.omega * ctrl_dt * np.linalg.norm(omega, axis=1),
         -rc.action * ctrl_dt * np.linalg.norm(u, axis=1),
+        -rc.floor * ctrl_dt * (pos[:, 2] <= p.floor_z),
+        -rc.tilt * ctrl_dt * (1.0 - rot[:, 2, 2]),
     ])
     new_state = dict(pos=pos, vel=vel, rot=rot, omega=omega, motor=motor, goal=goal)
     return new_state, obs, terms.sum(0), terms, contact

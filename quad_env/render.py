@@ -125,6 +125,34 @@ def save_animation_gif(ep: Episode, path: str, frame_every: int = 5, room_half: 
     return path
 
 
+class SwarmRecorder:
+    """Stores one swarm of a running ``VecQuadEnv`` (one of many, e.g. in a batched evaluation) for pictures.
+
+    Create it after ``reset``, call ``record()`` after every ``step``, then ``episode(stats, title)``. The
+    env must not auto-reset (``auto_reset=False``), or an episode's end would be followed by the next one.
+    """
+
+    def __init__(self, env: VecQuadEnv, swarm: int = 0):
+        N = env.num_agents
+        self.env, self.swarm, self.rows = env, swarm, slice(swarm * N, (swarm + 1) * N)
+        self.pos, self.goal, self.hits = [], [], []
+        self.record()
+
+    def record(self) -> None:
+        env, rows = self.env, self.rows
+        self.pos.append(np.array(env._pos[rows], dtype=np.float64))
+        self.goal.append(np.array(env._goal[rows], dtype=np.float64))
+        touching = env._contact[self.swarm].copy()  # [N, N] pairs a < b in contact
+        if len(self.pos) > 1:
+            for a, b in zip(*np.nonzero(touching > self._touching)):  # new contacts: the pair's midpoint
+                self.hits.append([len(self.pos) - 1, *(0.5 * (self.pos[-1][a] + self.pos[-1][b]))])
+        self._touching = touching
+
+    def episode(self, stats: dict, title: str) -> Episode:
+        return Episode(pos=np.stack(self.pos), goal=np.stack(self.goal), collisions=np.array(self.hits).reshape(-1, 4),
+                       stats=stats, dt=self.env.cfg.control_dt, title=title)
+
+
 def main(argv: Optional[List[str]] = None) -> List[str]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenario", required=True, choices=SCENARIOS)

@@ -34,9 +34,9 @@ import numpy as np
 from quad_env.config import EnvConfig
 from quad_env.kernels import (
     ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_RETURN,
-    ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS, ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE,
-    AG_REACHED, NUM_ACC, NUM_AGENT_ACC, all_finite, observe_kernel, refresh_contacts_kernel, spawn_kernel,
-    step_with_metrics_kernel,
+    ACC_RESPAWNS, ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS, ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE,
+    AG_REACHED, NUM_ACC, NUM_AGENT_ACC, all_finite, observe_kernel, refresh_contacts_kernel, respawn_kernel,
+    spawn_kernel, step_with_metrics_kernel,
 )
 from quad_env.obs_layout import ObsLayout
 from quad_env.params import I_EP_STEPS, REWARD_TERMS, pack_params
@@ -119,6 +119,10 @@ class VecQuadEnv:
         self._action_buf = np.zeros((M, 4), np.float32)
         self.reward_terms: Dict[str, np.ndarray] = {name: self._terms[k] for k, name in enumerate(REWARD_TERMS)}
         self._episode_stats: List[dict] = []
+        # ---- floor contacts: reward.crash and the respawn_on_floor training aid (off in the paper's setting)
+        self._floor_on = cfg.respawn_on_floor or cfg.reward.crash > 0
+        self._on_floor = np.zeros(M, bool)  # touching the floor after the previous step
+        self._crash_row = REWARD_TERMS.index("crash")
         self.reset()
 
     # ------------------------------------------------------------------ public buffers
@@ -167,6 +171,8 @@ class VecQuadEnv:
                                           self._step_count, self._fp, self._ip, self._obs, self._rew, self._terms,
                                           self._done, self._diverged, self._acc, self.scenario.jumped,
                                           self._agent_acc)
+        if self._floor_on:
+            self._floor_contacts()
         if n_done:
             self._finish_episodes()
         else:
@@ -186,7 +192,8 @@ class VecQuadEnv:
         goal -- mean distance over 5 consecutive steps < 0.5 m at some step after the last goal jump --
         and had no drone-drone contact after the grace period); ``agent_success``, ``agent_collided``
         (bool [N]: the same per drone); ``rew_<term>`` (per-term episode reward, mean per agent: they sum
-        to ``return``); ``diverged`` (the episode ended on a non-finite state).
+        to ``return``); ``diverged`` (the episode ended on a non-finite state); ``respawns`` (drones put back
+        in the air by ``env.respawn_on_floor``).
         """
         out, self._episode_stats = self._episode_stats, []
         return out
@@ -239,6 +246,7 @@ class VecQuadEnv:
         everyone = np.ones(self.num_envs, bool)
         refresh_contacts_kernel(everyone, self._pos, self._contact, self._fp, self._ip)
         self._room_contact[:] = 0
+        self._on_floor[:] = self._pos[:, 2] <= self.cfg.physics.floor_z  # resting drones are no new contact
         self.observe()
 
     def simulate(self, actions: np.ndarray, noise: bool = False) -> DroneState:
@@ -282,12 +290,45 @@ class VecQuadEnv:
                      self._room_contact, self._rng, self._fp, self._ip, SPAWN_HALF, SPAWN_MIN_Z, SPAWN_MIN_SEP)
         refresh_contacts_kernel(selected, self._pos, self._contact, self._fp, self._ip)
         self._step_count[selected] = 0
+        self._on_floor[np.repeat(selected, self.num_agents)] = False
         self._acc[selected] = 0.0
         self._agent_acc[np.repeat(selected, self.num_agents)] = 0.0
         self.scenario.jumped[selected] = 0
         self._diverged[selected] = False
         self._needs_reset[selected] = False
         observe_kernel(selected, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
+                       self._ip, self._obs)
+
+    def _floor_contacts(self) -> None:
+        """After a step: ``reward.crash`` for every new floor contact, then (``respawn_on_floor``) those
+        drones go back to the scenario's spawn box. Swarms that diverged or just ended are left alone."""
+        E, N = self.num_envs, self.num_agents
+        live = ~np.repeat(self._done | self._diverged, N)  # [M]
+        on_floor = self._pos[:, 2] <= self.cfg.physics.floor_z  # [M]
+        new = on_floor & ~self._on_floor & live  # [M]
+        crash = self._terms[self._crash_row]  # [M] view
+        crash[:] = 0.0
+        c = self.cfg.reward.crash
+        if c > 0 and new.any():
+            crash[new] = -c
+            self._rew[new] -= c
+            per_swarm = c * new.reshape(E, N).sum(axis=1)  # [E]
+            self._acc[:, ACC_TERMS + self._crash_row] -= per_swarm
+            self._acc[:, ACC_RETURN] -= per_swarm
+        self._on_floor[:] = on_floor
+        if not self.cfg.respawn_on_floor:
+            return
+        rows = np.flatnonzero(on_floor & live)
+        if rows.size == 0:
+            return
+        respawn_kernel(rows, self._center, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
+                       self._room_contact, self._rng, self._fp, self._ip, SPAWN_HALF, SPAWN_MIN_Z, SPAWN_MIN_SEP)
+        self._on_floor[rows] = False
+        swarms = np.zeros(E, bool)
+        swarms[rows // N] = True
+        self._acc[:, ACC_RESPAWNS] += np.bincount(rows // N, minlength=E)
+        refresh_contacts_kernel(swarms, self._pos, self._contact, self._fp, self._ip)
+        observe_kernel(swarms, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
                        self._ip, self._obs)
 
     def _finish_episodes(self) -> None:
@@ -336,6 +377,7 @@ class VecQuadEnv:
             "agent_success": success.copy(),
             "agent_collided": collided.copy(),
             "diverged": bool(self._diverged[e]),
+            "respawns": int(acc[ACC_RESPAWNS]),
         }
         for k, name in enumerate(REWARD_TERMS):
             stats[f"rew_{name}"] = acc[ACC_TERMS + k] / N

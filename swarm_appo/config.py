@@ -57,6 +57,15 @@ class ModelConfig:
     init_action_mean: float = 0.0
     """Initial mean action (the actor's output bias). 2 / thrust_to_weight - 1 (0.053 for the Crazyflie)
     is the hover command: the untrained policy then commands hover thrust on average (0 gives 0.95 g)."""
+    body_frame_obs: bool = False
+    """Give the network the observation in the drone's body frame (world vectors v -> R_i^T v, neighbour
+    rotations -> R_i^T R_j, R_i kept): a rotor command depends on body-frame quantities, which a small
+    world-frame MLP must otherwise learn as products of its inputs. For deepsets / kattention / mlp; the
+    SE(3) encoders canonicalize by R_i themselves. Not in the paper (False)."""
+    init_actor_out_scale: float = 1.0
+    """Multiplies the Xavier-uniform init of the actor's last layer (1 = the paper). 0.01 (PPO practice)
+    makes the untrained policy command ``init_action_mean`` in every state instead of a random state-dependent
+    thrust pattern that flips a drone within a second."""
 
 
 @dataclass
@@ -184,11 +193,13 @@ class TrainConfig:
 # The quickstart setting (load_config(None)): what differs from the defaults above.
 # configs/quickstart.yaml states the same values; a test keeps the two equal.
 QUICKSTART: Dict[str, Any] = {
-    "env": {"num_agents": 8, "scenario": "static_same_goal"},
+    "env": {"num_agents": 8, "scenario": "static_same_goal", "respawn_on_floor": True,
+            "reward": {"crash": 2.0, "tilt": 1.0}},
     "model": {"encoder": "deepsets", "encoder_kwargs": {"hidden": 64, "out_dim": 64}, "head_hidden": 64,
-              "normalize_obs": True, "init_action_mean": 0.053},
+              "normalize_obs": True, "body_frame_obs": True, "init_action_mean": 0.053,
+              "init_actor_out_scale": 0.01, "init_log_std": -2.0},
     "algo": {"batch_size": 2048, "num_epochs": 2, "lr": 3e-4},
-    "runner": {"num_workers": 0, "envs_per_worker": 16, "total_agent_steps": 10_000_000, "time_limit_s": 480.0,
+    "runner": {"num_workers": 0, "envs_per_worker": 16, "total_agent_steps": 10_000_000, "time_limit_s": 420.0,
                "checkpoint_every_s": 120.0, "name": "quickstart"},
 }
 
@@ -441,6 +452,7 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
     if known_encoders is not None and m.encoder not in known_encoders:
         raise ConfigError(f"model.encoder: unknown encoder {m.encoder!r}; valid: {list(known_encoders)}")
     _check(m.head_hidden >= 1, "model.head_hidden", "must be >= 1", m.head_hidden)
+    _check(m.init_actor_out_scale >= 0, "model.init_actor_out_scale", "must be >= 0", m.init_actor_out_scale)
     _check(-1.0 <= m.init_action_mean <= 1.0, "model.init_action_mean", "must be in [-1, 1] (the action range)",
            m.init_action_mean)
     _check(bool(m.head_activation), "model.head_activation", "must name an activation", m.head_activation)

@@ -1,28 +1,61 @@
-"""Policy evaluation: run whole episodes with a policy (or random actions) and average the swarm metrics.
+"""Policy evaluation: whole seeded episodes with a trained policy (or random actions), and the paper's tables.
 
-Used at the end of every training run to show whether it learned: the trained policy's mean distance
-to goal against a uniformly random policy's, on the same seeds.
+Two uses:
+
+- the end of every training run: ``compare_with_random`` (mean actions of the trained policy against
+  uniformly random actions, on the same seeded episodes);
+- the command line, the paper's Table 1 (per scenario) and Table 2 (zero-shot scaling to larger swarms)
+  from one or more checkpoints, side by side::
+
+    python -m swarm_appo.evaluate --checkpoint runs/a [runs/b ...] [--scenarios all|name,name]
+        [--episodes 50] [--num-agents 8|16,32,64,128] [--workers N] [--seed S] [--out DIR] [--stochastic]
+
+How episodes run: the episodes of one (policy, N, scenario) are cut into tasks of at most
+``--episodes-per-task``; a task is one ``VecQuadEnv`` with one swarm per episode, stepped for the whole
+episode with one batched policy forward per step. Tasks run in this process (``--workers 0``) or on Ray
+actors (one core each). Task c of a (N, scenario) is seeded by ``task_seed(seed, c)`` whatever the policy
+and the number of workers, so every policy flies the same episodes, and serial and Ray runs give the same
+numbers. (Task 0 uses the seed itself: with ``--episodes`` up to ``--episodes-per-task``, the training
+scenario and the default seed, the CLI repeats the end-of-run evaluation exactly.)
+
+Each checkpoint acts in the environment it was trained in, with only the scenario and N replaced: the
+policies are size-independent (K neighbour slots, padded and masked when N - 1 < K), so N may change
+freely; an observation layout that differs from the checkpoint's (K, neighbour fields) is an error.
 """
 from __future__ import annotations
 
-from typing import Callable, Dict, List
+import dataclasses
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from quad_env import EnvConfig, VecQuadEnv
+from quad_env import EnvConfig, ObsLayout, VecQuadEnv
+from quad_env.render import Episode, SwarmRecorder
+from quad_env.scenarios import SCENARIO_REGISTRY, SCENARIOS
 
 Policy = Callable[[np.ndarray], np.ndarray]  # obs [M, D] -> actions [M, 4]
 
+EXCLUDED_FROM_ALL = ("mix",)  # a random mixture of the others: its episodes already appear under their names
 
-def model_policy(model: torch.nn.Module, deterministic: bool = True) -> Policy:
-    """The actor's mean action (or a sample), on CPU."""
+
+# ----------------------------------------------------------------------------------------------- policies
+def model_policy(model: torch.nn.Module, deterministic: bool = True,
+                 generator: Optional[torch.Generator] = None) -> Policy:
+    """The actor's mean action (or a sample drawn with ``generator``), on CPU; the critic is not run."""
     model = model.to("cpu").eval()
 
     @torch.no_grad()
     def act(obs: np.ndarray) -> np.ndarray:
-        actions, _, _ = model.act(torch.from_numpy(obs), deterministic=deterministic)
-        return actions.numpy()
+        mean, log_std = model.policy(torch.from_numpy(obs))  # [M, 4], [4]
+        if deterministic:
+            return mean.numpy()
+        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+        return (mean + noise * torch.exp(log_std)).numpy()
 
     return act
 
@@ -32,16 +65,27 @@ def random_policy(seed: int) -> Policy:
     return lambda obs: rng.uniform(-1.0, 1.0, size=(obs.shape[0], 4)).astype(np.float32)
 
 
-def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: int) -> List[Dict]:
+# ----------------------------------------------------------------------------------------------- episodes
+def fly_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: int,
+                 record_first: bool = False) -> Tuple[List[Dict], Optional[SwarmRecorder]]:
     """``num_episodes`` swarm episodes, all in parallel (one swarm each), seeded: the same seed gives the
-    same initial states whatever the policy, so two policies are compared on the same episodes."""
+    same initial states whatever the policy. Returns the episode stats (swarm order) and, with
+    ``record_first``, a recorder holding the first episode's trajectory."""
     env = VecQuadEnv(env_cfg, num_envs=num_episodes, seed=seed, auto_reset=False)
     obs = env.reset()
+    recorder = SwarmRecorder(env, 0) if record_first else None
     for _ in range(env_cfg.episode_steps):
         obs, _, term, trunc = env.step(policy(obs))
+        if recorder is not None:
+            recorder.record()
         if (term | trunc).all():
             break
-    return env.pop_episode_stats()
+    return env.pop_episode_stats(), recorder
+
+
+def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: int) -> List[Dict]:
+    """The stats of ``fly_episodes``."""
+    return fly_episodes(env_cfg, policy, num_episodes, seed)[0]
 
 
 def summarize(episodes: List[Dict], prefix: str) -> Dict[str, float]:
@@ -67,48 +111,343 @@ def compare_with_random(env_cfg: EnvConfig, model: torch.nn.Module, num_episodes
     return out
 
 
-def load_policy_from_checkpoint(path: str):
-    """(TrainConfig, model) from a checkpoint file or a run directory (its latest valid checkpoint)."""
-    import os
+# ----------------------------------------------------------------------------------------------- checkpoints
+@dataclass
+class LoadedPolicy:
+    """A checkpoint's policy: its run config, the model with its weights, and how to build another."""
 
+    cfg: object  # swarm_appo.config.TrainConfig
+    model: torch.nn.Module  # encoders.ActorCritic, weights loaded
+    factory: Callable[[], torch.nn.Module]  # picklable constructor of the same (untrained) model
+    agent_steps: int  # training steps of the checkpoint
+    run_name: str
+
+
+def load_checkpoint_policy(path: str) -> LoadedPolicy:
+    """The policy of a checkpoint file, or of a run directory's latest valid checkpoint."""
     from quad_env import ObsLayout
     from swarm_appo.checkpoint import load_checkpoint, load_latest_checkpoint
     from swarm_appo.config import config_from_dict
     from swarm_appo.model import model_factory
 
     if os.path.isdir(path):
-        state, found = load_latest_checkpoint(path)
+        state, _ = load_latest_checkpoint(path)
         if state is None:
             raise FileNotFoundError(f"no valid checkpoint in {path}/checkpoints")
-    else:
+    elif os.path.exists(path):
         state = load_checkpoint(path)
+    else:
+        raise FileNotFoundError(f"checkpoint {path} does not exist (give a checkpoint file or a run directory)")
     cfg = config_from_dict(state["config"])
-    model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)()
+    factory = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)
+    model = factory()
     model.load_state_dict(state["learner"]["model"])
-    return cfg, model
+    return LoadedPolicy(cfg, model, factory, int(state.get("agent_steps", 0)),
+                        cfg.runner.name or run_dir_of(path).name)
+
+
+def load_policy_from_checkpoint(path: str):
+    """(TrainConfig, model) from a checkpoint file or a run directory (its latest valid checkpoint)."""
+    loaded = load_checkpoint_policy(path)
+    return loaded.cfg, loaded.model
+
+
+def run_dir_of(path: str) -> Path:
+    """The run directory a checkpoint belongs to (the path itself if it is a directory)."""
+    p = Path(path)
+    if p.is_dir():
+        return p
+    return p.parent.parent if p.parent.name == "checkpoints" else p.parent
+
+
+@dataclass
+class PolicySpec:
+    """A policy to evaluate: a checkpoint's actor, or uniformly random actions (``factory`` None)."""
+
+    label: str  # table label: run name and encoder, e.g. "quickstart (deepsets)"
+    env: EnvConfig  # the environment it was trained in
+    factory: Optional[Callable[[], torch.nn.Module]] = None  # picklable model constructor
+    weights: Optional[Dict[str, torch.Tensor]] = None  # its state dict
+    layout: Optional[ObsLayout] = None  # the observations it was trained on
+    source: str = ""  # checkpoint path
+    step: int = 0  # agent steps of the checkpoint
+    seed: int = 0  # runner.seed of the run
+
+
+def load_policy_specs(paths: Sequence[str]) -> List[PolicySpec]:
+    """One spec per checkpoint, labelled ``run (encoder)``; labels that clash (two checkpoints of one
+    run) get the checkpoint's step, ``run@step (encoder)``, and then a counter."""
+    loaded = [load_checkpoint_policy(str(p)) for p in paths]
+    labels = [f"{x.run_name} ({x.cfg.model.encoder})" for x in loaded]
+    labels = [f"{x.run_name}@{x.agent_steps} ({x.cfg.model.encoder})" if labels.count(label) > 1 else label
+              for x, label in zip(loaded, labels)]
+    for label in set(labels):
+        same = [i for i, other in enumerate(labels) if other == label]
+        for n, i in enumerate(same if len(same) > 1 else []):
+            labels[i] = f"{label} #{n + 1}"
+    return [PolicySpec(label, x.cfg.env, x.factory, x.model.state_dict(), x.model.layout, str(p), x.agent_steps,
+                       x.cfg.runner.seed) for label, x, p in zip(labels, loaded, paths)]
+
+
+def random_spec(env: EnvConfig) -> PolicySpec:
+    return PolicySpec("random actions", env, source="uniform in [-1, 1]")
+
+
+# ----------------------------------------------------------------------------------------------- tasks
+@dataclass(frozen=True)
+class EvalTask:
+    """``num_episodes`` episodes of one policy at one N in one scenario, all in one VecQuadEnv."""
+
+    index: int  # position in the plan
+    policy: int  # index into the policy list
+    num_agents: int
+    scenario: str
+    chunk: int  # this task's index among the tasks of its (policy, N, scenario)
+    num_episodes: int
+    seed: int
+    env: EnvConfig
+    deterministic: bool
+    record_first: bool  # keep the trajectory of the first episode (for a picture)
+
+
+@dataclass
+class TaskResult:
+    task: EvalTask
+    episodes: List[Dict]  # stats, in episode order
+    trajectory: Optional[Episode]
+
+
+def task_seed(seed: int, chunk: int) -> int:
+    """Seed of the chunk-th task of every (policy, N, scenario): the seed itself for the first."""
+    if chunk == 0:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), int(chunk)]).generate_state(1)[0])
+
+
+def resolve_scenarios(text: str, num_agents: Sequence[int]) -> List[str]:
+    """``"all"`` (every registered scenario but ``mix``, those that fit every N) or a comma-separated list."""
+    if text.strip() == "all":
+        names = [s for s in SCENARIOS if s not in EXCLUDED_FROM_ALL]
+        return [s for s in names if SCENARIO_REGISTRY[s].min_agents <= min(num_agents)]
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    unknown = [s for s in names if s not in SCENARIO_REGISTRY]
+    if unknown or not names:
+        raise ValueError(f"unknown scenario(s) {unknown or [text]}; valid: {['all', *SCENARIOS]}")
+    for s in names:
+        need = SCENARIO_REGISTRY[s].min_agents
+        if need > min(num_agents):
+            raise ValueError(f"scenario {s!r} needs at least {need} drones, --num-agents has {min(num_agents)}")
+    return list(dict.fromkeys(names))
+
+
+def eval_env(spec: PolicySpec, num_agents: int, scenario: str) -> EnvConfig:
+    return dataclasses.replace(spec.env, num_agents=num_agents, scenario=scenario)
+
+
+def check_layouts(specs: Sequence[PolicySpec], num_agents: Sequence[int], scenarios: Sequence[str]) -> None:
+    """Every checkpoint must see the observation layout it was trained on. Building the environments here
+    also compiles the numba kernels once, so the workers load them from the on-disk cache."""
+    for spec in specs:
+        if spec.layout is None:  # random actions: no observations read
+            continue
+        for n in num_agents:
+            for s in scenarios:
+                layout = VecQuadEnv(eval_env(spec, n, s), num_envs=1, seed=0).layout
+                if layout != spec.layout:
+                    raise ValueError(
+                        f"checkpoint {spec.source} was trained on observations {spec.layout!r}, but scenario "
+                        f"{s!r} with {n} drones gives {layout!r}; a policy carries over to any swarm size, "
+                        "not to another observation layout (K, neighbour fields, obstacle field)")
+
+
+def plan_tasks(specs: Sequence[PolicySpec], num_agents: Sequence[int], scenarios: Sequence[str], episodes: int,
+               episodes_per_task: int, seed: int, deterministic: bool = True, pictures: bool = True
+               ) -> List[EvalTask]:
+    """Tasks in table order: policy, then N, then scenario, then chunk."""
+    if episodes < 1 or episodes_per_task < 1:
+        raise ValueError(f"episodes ({episodes}) and episodes per task ({episodes_per_task}) must be >= 1")
+    tasks = []
+    for p, spec in enumerate(specs):
+        for n in num_agents:
+            for s in scenarios:
+                for chunk, first in enumerate(range(0, episodes, episodes_per_task)):
+                    tasks.append(EvalTask(len(tasks), p, n, s, chunk, min(episodes_per_task, episodes - first),
+                                          task_seed(seed, chunk), eval_env(spec, n, s), deterministic,
+                                          pictures and chunk == 0))
+    return tasks
+
+
+def run_task(task: EvalTask, factory: Optional[Callable], weights: Optional[Dict], label: str = "") -> TaskResult:
+    """Fly one task's episodes (the same code in this process and in a Ray actor)."""
+    if factory is None:
+        policy = random_policy(task.seed)
+    else:
+        model = factory()
+        model.load_state_dict(weights)
+        policy = model_policy(model, task.deterministic, torch.Generator().manual_seed(task.seed))
+    stats, recorder = fly_episodes(task.env, policy, task.num_episodes, task.seed, task.record_first)
+    trajectory = None
+    if recorder is not None:
+        title = f"{label}: {task.scenario}, {task.num_agents} drones, seed {task.seed}"
+        trajectory = recorder.episode(stats[0], title)
+    return TaskResult(task, stats, trajectory)
+
+
+class EvalWorker:
+    """A Ray actor (one core) that runs tasks."""
+
+    def __init__(self):
+        torch.set_num_threads(1)
+
+    def run(self, task: EvalTask, factory, weights, label: str) -> TaskResult:
+        return run_task(task, factory, weights, label)
+
+
+def run_tasks(tasks: Sequence[EvalTask], specs: Sequence[PolicySpec], workers: int,
+              progress: bool = False) -> List[TaskResult]:
+    """Results in task order. ``workers`` 0: in this process, one task after another; else Ray actors
+    (a local Ray bound to 127.0.0.1 is started if none is running, and shut down at the end)."""
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=sum(t.num_episodes for t in tasks), unit="episode", dynamic_ncols=True, desc="evaluate")
+    results: List[Optional[TaskResult]] = [None] * len(tasks)
+    try:
+        if workers == 0:
+            for t in tasks:
+                spec = specs[t.policy]
+                results[t.index] = run_task(t, spec.factory, spec.weights, spec.label)
+                if bar is not None:
+                    bar.update(t.num_episodes)
+        else:
+            for r in _run_on_ray(tasks, specs, workers):
+                results[r.task.index] = r
+                if bar is not None:
+                    bar.update(r.task.num_episodes)
+    finally:
+        if bar is not None:
+            bar.close()
+    return results
+
+
+def _run_on_ray(tasks, specs, workers):
+    import ray
+    from ray.util import ActorPool
+
+    from swarm_appo.sampling import init_local_ray
+
+    started = not ray.is_initialized()
+    init_local_ray(num_cpus=max(workers, os.cpu_count() or 1))
+    actors = []
+    try:
+        cpus = int(ray.cluster_resources().get("CPU", 0))
+        if workers > cpus:
+            warnings.warn(f"{workers} workers asked, Ray has {cpus} CPUs: using {max(cpus, 1)}", RuntimeWarning)
+            workers = max(cpus, 1)
+        weights = [ray.put(s.weights) if s.weights is not None else None for s in specs]
+        actors = [ray.remote(num_cpus=1, max_restarts=0)(EvalWorker).remote() for _ in range(workers)]
+        pool = ActorPool(actors)
+        biggest_first = sorted(tasks, key=lambda t: (-t.num_agents * t.num_episodes, t.index))
+        submit = lambda a, t: a.run.remote(t, specs[t.policy].factory, weights[t.policy], specs[t.policy].label)  # noqa: E731
+        yield from pool.map_unordered(submit, biggest_first)
+    finally:
+        for a in actors:
+            ray.kill(a)
+        if started:
+            ray.shutdown()
+
+
+# ----------------------------------------------------------------------------------------------- command line
+def parse_num_agents(text: str) -> List[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"--num-agents must be integers separated by commas, e.g. 16,32,64,128; got {text!r}")
+    if not values or min(values) < 1:
+        raise ValueError(f"--num-agents must be integers >= 1, got {text!r}")
+    return list(dict.fromkeys(values))
+
+
+def _differing_env_keys(a: EnvConfig, b: EnvConfig) -> List[str]:
+    ignored = ("num_agents", "scenario", "num_neighbors", "neighbor_obs")
+    da, db = a.to_dict(), b.to_dict()
+    return sorted(k for k in da if k not in ignored and da[k] != db.get(k))
 
 
 def main(argv=None) -> int:
-    """``python -m swarm_appo.evaluate --checkpoint runs/quickstart``: trained vs random policy."""
+    """The paper's evaluation tables for one or more checkpoints (see the module docstring)."""
     import argparse
-    import dataclasses
+    import time
 
-    p = argparse.ArgumentParser(prog="swarm-eval", description=main.__doc__)
-    p.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
-    p.add_argument("--episodes", type=int, default=8, help="seeded swarm episodes per policy")
-    p.add_argument("--num-agents", type=int, default=None, help="swarm size (default: as trained)")
-    p.add_argument("--scenario", default=None, help="scenario (default: as trained)")
+    from swarm_appo import eval_report
+    from swarm_appo.checkpoint import CheckpointCorruptError
+
+    p = argparse.ArgumentParser(prog="swarm-eval", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint", required=True, nargs="+", metavar="PATH",
+                   help="checkpoint files or run directories (their latest valid checkpoint); several side by side")
+    p.add_argument("--scenarios", default="all", help="'all' (every scenario but mix) or names separated by commas")
+    p.add_argument("--episodes", type=int, default=50, help="episodes per scenario and swarm size (paper: 50)")
+    p.add_argument("--num-agents", default=None,
+                   help="swarm size N (default: as trained); several, e.g. 16,32,64,128, add the scaling table")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                   help="Ray actors, one core each (default: all cores); 0 = in this process, no Ray")
     p.add_argument("--seed", type=int, default=None,
-                   help="episode seed (default: the one the end-of-run evaluation used)")
+                   help="episode seed (default: the end-of-run evaluation's seed of the first checkpoint)")
+    p.add_argument("--out", default=None, help="output folder (default: <run dir of the first checkpoint>/eval)")
+    p.add_argument("--stochastic", action="store_true", help="sample actions instead of the mean action")
+    p.add_argument("--random-baseline", action="store_true", help="add uniformly random actions as a policy")
+    p.add_argument("--episodes-per-task", type=int, default=25,
+                   help="episodes flown together in one environment (one batched forward per step)")
+    p.add_argument("--no-pictures", action="store_true", help="no trajectory pictures")
+    p.add_argument("--wandb-mode", default="offline", choices=("offline", "online", "disabled"))
+    p.add_argument("--wandb-project", default="swarm-appo")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    cfg, model = load_policy_from_checkpoint(args.checkpoint)
-    env_cfg = dataclasses.replace(cfg.env, **{k: v for k, v in (("num_agents", args.num_agents),
-                                                                ("scenario", args.scenario)) if v is not None})
-    seed = default_eval_seed(cfg.runner.seed) if args.seed is None else args.seed
-    result = compare_with_random(env_cfg, model, args.episodes, seed)
-    for k in sorted(result):
-        print(f"{k:32s} {result[k]:.4f}")
+    if args.workers < 0:
+        p.error(f"--workers must be >= 0, got {args.workers}")
+    if args.episodes < 1 or args.episodes_per_task < 1:
+        p.error("--episodes and --episodes-per-task must be >= 1")
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # one core per task, in-process as on the Ray actors (same numbers)
+    try:
+        try:
+            specs = load_policy_specs(args.checkpoint)
+            trained_n = sorted({s.env.num_agents for s in specs})
+            if args.num_agents is None and len(trained_n) > 1:
+                raise ValueError(f"the checkpoints were trained with different swarm sizes {trained_n}: "
+                                 "choose one with --num-agents")
+            num_agents = parse_num_agents(args.num_agents) if args.num_agents else trained_n
+            scenarios = resolve_scenarios(args.scenarios, num_agents)
+            for s in specs[1:]:
+                keys = _differing_env_keys(specs[0].env, s.env)
+                if keys:
+                    warnings.warn(f"{s.label} was trained in another environment than {specs[0].label} "
+                                  f"(env keys {keys}); each is evaluated in its own", RuntimeWarning)
+            if args.random_baseline:
+                specs.append(random_spec(specs[0].env))
+            check_layouts(specs, num_agents, scenarios)
+        except (ValueError, FileNotFoundError, CheckpointCorruptError) as exc:
+            p.error(str(exc))
+        seed = default_eval_seed(specs[0].seed) if args.seed is None else args.seed
+        out = Path(args.out) if args.out else run_dir_of(args.checkpoint[0]) / "eval"
+        tasks = plan_tasks(specs, num_agents, scenarios, args.episodes, args.episodes_per_task, seed,
+                           deterministic=not args.stochastic, pictures=not args.no_pictures)
+        start = time.perf_counter()
+        results = run_tasks(tasks, specs, args.workers, progress=not args.no_progress)
+        elapsed = time.perf_counter() - start
+    finally:
+        torch.set_num_threads(threads)
+
+    setup = eval_report.EvalSetup(
+        policies=[(s.label, s.source, s.step) for s in specs], num_agents=num_agents, scenarios=scenarios,
+        episodes=args.episodes, seed=seed, deterministic=not args.stochastic, workers=args.workers,
+        wall_s=elapsed)
+    report = eval_report.write_report(out, setup, results, [s.label for s in specs])
+    print(report.text)
+    eval_report.log_to_wandb(out, report, setup, mode=args.wandb_mode, project=args.wandb_project)
+    print(f"written to {out}: {', '.join(sorted(str(p.relative_to(out)) for p in report.files))}")
     return 0
 
 

@@ -24,6 +24,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence
 
 import numpy as np
 
+from quad_env.params import REWARD_TERMS
 from swarm_appo.checkpoint import atomic_write_bytes
 
 METRICS_FILE = "metrics.jsonl"
@@ -31,9 +32,12 @@ WANDB_ID_FILE = "wandb_id.txt"
 STEP_KEY = "global_step"
 WANDB_MODES = ("offline", "online", "disabled")
 
-METRIC_GROUPS = ("charts", "swarm", "losses", "lag", "perf", "system", "eval", "eval_random")
+METRIC_GROUPS = ("charts", "swarm", "reward", "losses", "lag", "perf", "system", "eval", "eval_random")
 
 METRICS: Dict[str, str] = {
+    # reward/: what the policy is paid for (quad_env.REWARD_TERMS)
+    **{f"reward/{term}": f"per-agent episode sum of the reward term {term!r} (env.reward.{term} sets its weight)"
+       for term in REWARD_TERMS},
     # eval/, eval_random/: end-of-run evaluation (mean actions vs uniformly random actions, same episodes)
     "eval/reward": "mean per-agent episode reward of the trained policy (mean actions)",
     "eval/dist": "mean distance to goal over the last 5 s of the episode, trained policy (m)",

@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 from collections import deque
 from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
@@ -225,12 +227,25 @@ class RaySampler:
             pass
 
 
+def _init_keeping_sigterm(**init_kwargs) -> None:
+    """ray.init replaces the driver's SIGTERM handler with one that exits at once; keep the caller's
+    (the launchers turn SIGTERM into a final checkpoint and a clean exit; ``ray job stop`` sends SIGTERM)."""
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    sigterm = signal.getsignal(signal.SIGTERM) if in_main_thread else None
+    ray.init(**init_kwargs)
+    if callable(sigterm):
+        signal.signal(signal.SIGTERM, sigterm)
+
+
 def init_local_ray(num_cpus: Optional[int] = None) -> None:
     """Start (or reuse) a local Ray bound to loopback."""
     if ray.is_initialized():
         return
-    ray.init(num_cpus=num_cpus or os.cpu_count(), _node_ip_address="127.0.0.1", include_dashboard=False,
-             log_to_driver=True, configure_logging=False)
+    # Ray starts its workers at niceness 15, below the learner (the driver): on a busy laptop the rollout
+    # actors would then starve while the learner waits for them. Sampling is half of the job: same priority.
+    os.environ.setdefault("RAY_worker_niceness", "0")
+    _init_keeping_sigterm(num_cpus=num_cpus or os.cpu_count(), _node_ip_address="127.0.0.1",
+                          include_dashboard=False, log_to_driver=True, configure_logging=False)
 
 
 def init_ray(address: Optional[str]) -> None:
@@ -238,4 +253,4 @@ def init_ray(address: Optional[str]) -> None:
     if address is None:
         init_local_ray()
     elif not ray.is_initialized():
-        ray.init(address=address, log_to_driver=True, configure_logging=False)
+        _init_keeping_sigterm(address=address, log_to_driver=True, configure_logging=False)

@@ -11,6 +11,7 @@ are checkpointed atomically, so a run killed at any moment resumes from its last
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import random
@@ -23,7 +24,7 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 import torch
 
-from quad_env import ObsLayout, VecQuadEnv
+from quad_env import REWARD_TERMS, EnvConfig, ObsLayout, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
 from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
@@ -99,6 +100,11 @@ SWARM_METRICS = (("dist", "dist_last_5s"), ("dist_final", "dist_final"), ("colli
                  ("room_contacts", "room_contacts_after_grace"))
 
 
+def evaluation_env(env: EnvConfig) -> EnvConfig:
+    """The environment a policy is judged in: the training one without the training aids (respawn)."""
+    return dataclasses.replace(env, respawn_on_floor=False)
+
+
 def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
     """charts/ and swarm/ records from the swarm episodes that ended since the last log."""
     if not episodes:
@@ -109,6 +115,10 @@ def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
     by_scenario: Dict[str, List[Dict[str, Any]]] = defaultdict(list)
     for e in episodes:
         by_scenario[e.get("scenario", "unknown")].append(e)
+    for term in REWARD_TERMS:
+        vals = [e[f"rew_{term}"] for e in episodes if f"rew_{term}" in e]
+        if vals:
+            out[f"reward/{term}"] = float(np.mean(vals))
     for key, src in SWARM_METRICS:
         vals = [e[src] for e in episodes if src in e]
         if vals:
@@ -320,7 +330,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
         bar.close()
     final_eval: Dict[str, float] = {}
     if cfg.runner.final_eval_episodes > 0 and not interrupted:
-        final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
+        final_eval = compare_with_random(evaluation_env(cfg.env), learner.model, cfg.runner.final_eval_episodes,
                                          seed=default_eval_seed(cfg.runner.seed))
         logger.log(agent_steps, final_eval)
     logger.close()

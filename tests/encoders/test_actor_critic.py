@@ -91,6 +91,22 @@ def test_xavier_uniform_init():
     assert torch.all(model.log_std == 0)
 
 
+def test_small_actor_output_init_starts_at_the_constant_mean_action():
+    layout = ObsLayout(3)
+    obs = torch.as_tensor(random_obs(layout, 64, np.random.default_rng(0)), dtype=torch.float32)
+    torch.manual_seed(0)
+    wide = ActorCritic(layout, encoder="deepsets", head_hidden=16, init_action_mean=0.053)
+    torch.manual_seed(0)
+    narrow = ActorCritic(layout, encoder="deepsets", head_hidden=16, init_action_mean=0.053,
+                         init_actor_out_scale=0.01)
+    np.testing.assert_allclose(narrow.actor_head[-1].weight.detach(), 0.01 * wide.actor_head[-1].weight.detach())
+    with torch.no_grad():
+        spread_wide = (wide.policy(obs)[0] - 0.053).abs().max().item()
+        spread_narrow = (narrow.policy(obs)[0] - 0.053).abs().max().item()
+    assert spread_narrow == pytest.approx(0.01 * spread_wide, rel=1e-4)  # the output is linear in that layer
+    assert narrow.config["init_actor_out_scale"] == 0.01  # rebuilt identically from a checkpoint
+
+
 def test_unknown_encoder_in_actor_critic():
     with pytest.raises(ValueError, match="deepsets"):
         ActorCritic(ObsLayout(), encoder="nope")

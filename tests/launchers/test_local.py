@@ -1,6 +1,7 @@
 """The launcher's command line: config errors, a short serial run end to end, and evaluation of its result."""
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
@@ -44,8 +45,13 @@ def test_short_run_then_evaluate(tmp_path, capsys):
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     assert records[-1]["global_step"] >= 128 and "eval/dist" in records[-1]
 
-    assert evaluate.main(["--checkpoint", str(run_dir), "--episodes", "2"]) == 0
-    printed = dict(line.split() for line in capsys.readouterr().out.strip().splitlines())
+    out = tmp_path / "eval"
+    assert evaluate.main(["--checkpoint", str(run_dir), "--episodes", "2", "--scenarios", "static_same_goal",
+                          "--random-baseline", "--workers", "0", "--out", str(out), "--no-pictures",
+                          "--wandb-mode", "disabled", "--no-progress"]) == 0
+    assert "| static_same_goal | cli (deepsets) |" in capsys.readouterr().out
+    with open(out / "table1_scenarios.csv", newline="") as f:
+        trained, random = csv.DictReader(f)
     # the CLI evaluates the same policy on the same seeded episodes as the end-of-run evaluation
-    assert float(printed["eval/dist"]) == pytest.approx(records[-1]["eval/dist"], abs=1e-4)
-    assert float(printed["eval_random/dist"]) > 0
+    assert float(trained["dist_mean"]) == pytest.approx(records[-1]["eval/dist"], abs=1e-4)
+    assert float(random["dist_mean"]) == pytest.approx(records[-1]["eval_random/dist"], abs=1e-4)

@@ -52,4 +52,4 @@ def test_pettingzoo_agents_and_truncation():
     env.step({a: np.zeros(4) for a in env.agents})
     _, rew, term, trunc, info = env.step({a: np.zeros(4) for a in env.agents})
     assert all(trunc.values()) and not any(term.values()) and env.agents == []
-    assert set(info["drone_0"]) == {"pos", "collision", "proximity", "omega", "action"}
+    assert set(info["drone_0"]) == {"pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash"}

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from quad_env import VecQuadEnv
+from quad_env.params import KERNEL_TERMS
 from quad_env.kernels import NUM_ACC, step_kernel
 from quad_env.reference import reference_step
 
@@ -40,7 +41,7 @@ def kernel_step(env, state, actions, step_count, contact):
     ou = np.zeros((M, 4))
     contact = contact.copy()
     steps = step_count.copy()
-    obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((5, M))
+    obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((KERNEL_TERMS, M))
     step_kernel(actions, s["pos"], s["vel"], s["rot"], s["omega"], s["motor"], ou, s["goal"], contact,
                 np.zeros(M, np.uint8), env._rng.copy(), steps, env._fp_quiet, env._ip_quiet, obs, rew, terms,
                 np.zeros(E, bool), np.zeros(E, bool), np.zeros((E, NUM_ACC)))
@@ -50,7 +51,8 @@ def kernel_step(env, state, actions, step_count, contact):
 CASES = [
     dict(num_agents=5, num_neighbors=3, neighbor_obs="full"),
     dict(num_agents=5, num_neighbors=6, neighbor_obs="pos_vel", sensing_radius=0.5),
-    dict(num_agents=6, num_neighbors=2, neighbor_obs="full", drag_coeff=0.02, downwash=False),
+    dict(num_agents=6, num_neighbors=2, neighbor_obs="full", drag_coeff=0.02, downwash=False,
+         reward=dict(floor=1.5, tilt=0.8)),  # the optional shaping terms
 ]
 
 

@@ -27,6 +27,8 @@ def test_reward_terms_hand_computed(quiet_cfg):
         "proximity": [-5 * DT * prox, -5 * DT * prox, 0.0],
         "omega": [0.0, 0.0, -0.01 * DT * 3.0],
         "action": [-0.05 * DT * 2.0, -0.05 * DT * 2.0, -0.05 * DT * 2 * abs(a_hover)],
+        "floor": [0.0, 0.0, 0.0],  # shaping terms are off by default (the paper's reward)
+        "tilt": [0.0, 0.0, 0.0],
     }
     assert set(t) == set(REWARD_TERMS)
     for name, values in expected.items():
@@ -50,6 +52,22 @@ def test_coefficients_come_from_the_config(quiet_cfg):
     env.step(-np.ones((1, 4)))
     assert env.reward_terms["pos"][0] == pytest.approx(-2.0 * DT * 5.0, rel=1e-6)
     assert env.reward_terms["action"][0] == 0.0
+
+
+def test_floor_and_tilt_shaping_terms(quiet_cfg):
+    """Two drones on the floor (one level, one resting is always levelled) and one in the air tilted by
+    60 degrees about x: the floor term hits only the grounded drones, the tilt term is 1 - cos(tilt)."""
+    cfg = quiet_cfg(num_agents=3, num_neighbors=0, drag_coeff=0.0, reward=dict(floor=2.0, tilt=0.7))
+    env = VecQuadEnv(cfg, num_envs=1, seed=0)
+    c, s = np.cos(np.pi / 3), np.sin(np.pi / 3)
+    tilted = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    env.set_state(pos=[[0, 0, 0.046], [1, 0, 0.046], [2, 2, 5]], vel=np.zeros((3, 3)),
+                  rot=[np.eye(3), np.eye(3), tilted], omega=np.zeros((3, 3)), motor=np.zeros((3, 4)),
+                  goal=[[0, 0, 1], [1, 0, 1], [2, 2, 5]])
+    env.step(-np.ones((3, 4)))  # motors off: the grounded drones stay, the tilted one falls but keeps its attitude
+    t = env.reward_terms
+    np.testing.assert_allclose(t["floor"], [-2.0 * DT, -2.0 * DT, 0.0], rtol=1e-6)
+    np.testing.assert_allclose(t["tilt"], [0.0, 0.0, -0.7 * DT * (1 - c)], rtol=1e-5, atol=1e-9)
 
 
 def approach(quiet_cfg, restitution, steps=30):

@@ -1,0 +1,167 @@
+"""The paper's evaluation tables from episode stats: Table 1 (per scenario) and Table 2 (per swarm size).
+
+Input: ``EpisodeGroup``s, the episodes of one (policy, swarm size N, scenario) as the dicts that
+``VecQuadEnv.pop_episode_stats`` returns. Every cell is the mean ± std over episodes (population std,
+ddof = 0: the spread of the episodes, not the error of the mean; the CSV carries the episode count to
+compute either). Table 2 pools the episodes of all scenarios of one N, as the paper does.
+
+Columns (the paper's names; the definitions are those of ``swarm_appo.metrics``):
+
+    Rew    episode reward, mean per drone                              (stat ``return``)
+    Dist   mean distance to goal over the last 5 s, m                  (``dist_last_5s``)
+    Col    new drone-drone contacts per episode after the 1.5 s grace  (``collisions_after_grace``)
+    Suc %  drones that reached their goal and had no contact after the grace, percent (``success_rate``)
+    IColR  share of drones with a drone-drone contact after the grace  (``inter_collision_rate``)
+
+With several policies the best mean of each column among the rows of one scenario (Table 1) or one
+N (Table 2) is printed in bold in the Markdown table, as in the paper.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from typing import Dict, List, Sequence, Tuple
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Metric:
+    column: str  # header in the Markdown table
+    csv_name: str  # prefix of the CSV columns <csv_name>_mean, <csv_name>_std
+    stat: str  # key in the episode stats dict
+    scale: float  # the table shows stat * scale
+    decimals: int
+    higher_is_better: bool
+
+
+METRICS: Dict[str, Metric] = {
+    "rew": Metric("Rew", "reward", "return", 1.0, 2, True),
+    "dist": Metric("Dist", "dist", "dist_last_5s", 1.0, 2, False),
+    "col": Metric("Col", "collisions", "collisions_after_grace", 1.0, 2, False),
+    "suc": Metric("Suc %", "success_pct", "success_rate", 100.0, 1, True),
+    "icolr": Metric("IColR", "inter_collision_rate", "inter_collision_rate", 1.0, 3, False),
+}
+TABLE1_METRICS = ("rew", "dist", "col", "suc", "icolr")
+TABLE2_METRICS = ("rew", "col", "suc", "icolr")
+
+
+@dataclass
+class EpisodeGroup:
+    """The evaluation episodes of one policy, at one swarm size, in one scenario."""
+
+    policy: str  # label, e.g. "quickstart (deepsets)"
+    num_agents: int
+    scenario: str
+    episodes: List[dict]  # episode stats, in episode order
+
+
+@dataclass
+class Row:
+    """One table row: its labels (in column order), the episode count and (mean, std) per metric."""
+
+    labels: Dict[str, str]
+    episodes: int
+    values: Dict[str, Tuple[float, float]]
+
+
+def summarize_episodes(episodes: Sequence[dict], metrics: Sequence[str]) -> Dict[str, Tuple[float, float]]:
+    """``{metric: (mean, std)}`` over episodes, in table units (Suc in percent)."""
+    if not episodes:
+        raise ValueError("no episodes to summarize")
+    out = {}
+    for name in metrics:
+        m = METRICS[name]
+        x = np.array([float(e[m.stat]) for e in episodes], dtype=np.float64) * m.scale  # [episodes]
+        out[name] = (float(x.mean()), float(x.std()))
+    return out
+
+
+def _ordered(values) -> list:
+    """Distinct values in order of first appearance."""
+    return list(dict.fromkeys(values))
+
+
+def table1_rows(groups: Sequence[EpisodeGroup]) -> List[Row]:
+    """Table 1: one row per scenario (x N when there are several) x policy, in the order the groups came."""
+    several_n = len({g.num_agents for g in groups}) > 1
+    rows = []
+    for scenario in _ordered(g.scenario for g in groups):
+        for n in _ordered(g.num_agents for g in groups):
+            for g in groups:
+                if g.scenario == scenario and g.num_agents == n:
+                    labels = {"scenario": scenario, **({"N": str(n)} if several_n else {}), "policy": g.policy}
+                    rows.append(Row(labels, len(g.episodes), summarize_episodes(g.episodes, TABLE1_METRICS)))
+    return rows
+
+
+def table2_rows(groups: Sequence[EpisodeGroup]) -> List[Row]:
+    """Table 2 (zero-shot scaling): one row per N x policy, the episodes of all scenarios pooled."""
+    rows = []
+    for n in _ordered(g.num_agents for g in groups):
+        for policy in _ordered(g.policy for g in groups):
+            episodes = [e for g in groups if g.num_agents == n and g.policy == policy for e in g.episodes]
+            if episodes:
+                rows.append(Row({"N": str(n), "policy": policy}, len(episodes),
+                                summarize_episodes(episodes, TABLE2_METRICS)))
+    return rows
+
+
+def _best_rows(rows: Sequence[Row], metric: str) -> set:
+    """Indices of the rows with the best mean of ``metric`` as printed (rounded) among the rows sharing
+    all labels but the policy; none where all those rows tie (or there is one: nothing to compare)."""
+    blocks: Dict[tuple, List[int]] = {}
+    for i, r in enumerate(rows):
+        blocks.setdefault(tuple((k, v) for k, v in r.labels.items() if k != "policy"), []).append(i)
+    m = METRICS[metric]
+    sign = 1.0 if m.higher_is_better else -1.0
+    best = set()
+    for members in blocks.values():
+        shown = {i: sign * round(rows[i].values[metric][0], m.decimals) for i in members
+                 if math.isfinite(rows[i].values[metric][0])}
+        if len(set(shown.values())) < 2:
+            continue
+        top = max(shown.values())
+        best.update(i for i, v in shown.items() if v == top)
+    return best
+
+
+def to_markdown(rows: Sequence[Row], metrics: Sequence[str]) -> str:
+    """A GitHub Markdown table: the label columns, then ``mean ± std`` per metric (best in bold)."""
+    if not rows:
+        raise ValueError("no rows")
+    label_cols = list(rows[0].labels)
+    header = label_cols + [METRICS[m].column for m in metrics]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(label_cols) + "---:|" * len(metrics)]
+    best = {m: _best_rows(rows, m) for m in metrics}
+    for i, r in enumerate(rows):
+        cells = [r.labels[c] for c in label_cols]
+        for m in metrics:
+            d = METRICS[m].decimals
+            mean, std = r.values[m]
+            cell = f"{mean:.{d}f} ± {std:.{d}f}"
+            cells.append(f"**{cell}**" if i in best[m] else cell)
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def csv_header(rows: Sequence[Row], metrics: Sequence[str]) -> List[str]:
+    label_cols = ["num_agents" if c == "N" else c for c in rows[0].labels]
+    stats = [f"{METRICS[m].csv_name}_{s}" for m in metrics for s in ("mean", "std")]
+    return label_cols + ["episodes"] + stats
+
+
+def csv_records(rows: Sequence[Row], metrics: Sequence[str]) -> List[list]:
+    """One list per row, in ``csv_header`` order, numbers at full precision (also the wandb Table data)."""
+    return [list(r.labels.values()) + [r.episodes] + [v for m in metrics for v in r.values[m]] for r in rows]
+
+
+def to_csv(rows: Sequence[Row], metrics: Sequence[str]) -> str:
+    """CSV with one column per label, the episode count, and ``<metric>_mean``, ``<metric>_std``."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(csv_header(rows, metrics))
+    writer.writerows(csv_records(rows, metrics))
+    return buf.getvalue()

@@ -1,0 +1,31 @@
+"""Helpers for tests and benchmarks: an untrained policy saved exactly as the trainer saves a checkpoint."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional, Sequence
+
+import torch
+
+from quad_env import ObsLayout
+from swarm_appo.checkpoint import save_checkpoint
+from swarm_appo.config import config_to_dict, load_config
+from swarm_appo.model import model_factory
+
+
+def untrained_checkpoint(root, name: str, overrides: Sequence[str] = (), encoder_kwargs: Optional[dict] = None,
+                         seed: int = 0, agent_steps: int = 1000, config: Optional[str] = None) -> Path:
+    """Build the model of ``load_config(config, overrides)`` (default: the quickstart config; ``key=value``
+    overrides; ``encoder_kwargs`` replaces the encoder's options), initialised from ``seed``, and save it
+    as ``root/name/checkpoints/ckpt_<agent_steps>.pt``. Returns the run directory ``root/name``."""
+    from swarm_appo.trainer import CHECKPOINT_FORMAT
+
+    cfg = load_config(config, [f"runner.name={name}", f"runner.seed={seed}", *overrides])
+    if encoder_kwargs is not None:
+        cfg.model.encoder_kwargs = dict(encoder_kwargs)
+    torch.manual_seed(seed)
+    model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)()
+    state = {"format": CHECKPOINT_FORMAT, "learner": {"model": model.state_dict()}, "agent_steps": agent_steps,
+             "config": config_to_dict(cfg)}
+    run_dir = Path(root) / name
+    save_checkpoint(run_dir, state, step=agent_steps)
+    return run_dir
