@@ -68,7 +68,83 @@ def test_relative_run_dirs_go_under_the_home_directory(tmp_path):
     assert cluster_run_root("~/x", home=tmp_path) == Path(os.path.expanduser("~/x"))
 
 
+def test_example_cluster_yaml_is_a_valid_ray_cluster_config():
+    """configs/cluster/example.yaml passes the schema `ray up` checks (Ray's autoscaler validator)."""
+    import yaml
+    from ray.autoscaler._private.util import prepare_config, validate_config
+
+    config = yaml.safe_load((ROOT / "configs" / "cluster" / "example.yaml").read_text())
+    validate_config(prepare_config(config))
+    config["max_wrkers"] = 3  # the validator is strict: a typo is caught
+    with pytest.raises(Exception, match="max_wrkers"):
+        validate_config(prepare_config(config))
+
+
 # --------------------------------------------------------------------------- a real two-node cluster
+@pytest.fixture(scope="module")
+def cluster():
+    """A head and a worker node, 2 logical CPUs each, on 127.0.0.1; stopped by the last test (or at the end)."""
+    with LocalCluster(nodes=2, cpus_per_node=2) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def run_root(tmp_path_factory):
+    return tmp_path_factory.mktemp("cluster_runs")
+
+
+def cli(cluster, *args, timeout=600):
+    """Run ``python -m launchers.ray_cluster <args> --address <the cluster>`` as a user would."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-m", "launchers.ray_cluster", *args[:1], "--address", cluster.dashboard_url, *args[1:]]
+    return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def test_submit_spreads_rollout_actors_over_both_nodes(cluster, run_root):
+    done = cli(cluster, "submit", "--follow", "--log-every-s", "5", *TINY, "runner.num_workers=0",
+               "runner.total_agent_steps=960", f"runner.run_dir={run_root}", "runner.name=two_nodes")
+    logs = done.stdout + done.stderr
+    assert done.returncode == 0, logs[-4000:]
+    job_id = done.stdout.splitlines()[0]
+    status = cli(cluster, "status", job_id)
+    assert f"{job_id}: SUCCEEDED" in status.stdout, status.stdout + status.stderr
+
+    run_dir = run_root / "two_nodes"
+    assert list((run_dir / "checkpoints").glob("ckpt_*.pt")), logs[-3000:]
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["global_step"] >= 960
+    placement = json.loads((run_dir / "cluster.json").read_text())
+    node_ids = set(cluster.node_ids)
+    # 2 nodes x 2 CPUs, one CPU for the learner: three rollout actors, spread over both nodes
+    assert {n["node_id"] for n in placement["nodes"]} == node_ids
+    assert len(placement["rollout_workers"]) == 3
+    assert {w["node_id"] for w in placement["rollout_workers"]} == node_ids
+    # ... and both nodes produced fragments, which the learner fetched across nodes
+    assert set(placement["fragments_per_node"]) == node_ids and min(placement["fragments_per_node"].values()) > 0
+    assert sum(placement["agent_steps_per_node"].values()) == records[-1]["global_step"]
+    assert placement["learner"]["node_id"] in node_ids and placement["learner"]["device"] == "cpu"
+    assert any(r.get("perf/remote_fragment_fraction", 0) > 0 for r in records)
+
+
+def test_stop_ends_a_run_with_a_final_checkpoint(cluster, run_root):
+    done = cli(cluster, "submit", *TINY, "runner.total_agent_steps=1000000000", f"runner.run_dir={run_root}",
+               "runner.name=stopped")
+    assert done.returncode == 0, done.stderr[-3000:]
+    job_id = done.stdout.splitlines()[0]
+    metrics = run_root / "stopped" / "metrics.jsonl"
+    deadline = time.monotonic() + 300
+    while not (metrics.exists() and metrics.read_text().strip()):
+        assert time.monotonic() < deadline, cli(cluster, "logs", job_id).stdout[-3000:]
+        time.sleep(1)
+    stopped = cli(cluster, "stop", job_id)
+    assert stopped.returncode == 0 and f"{job_id}: STOPPED" in stopped.stdout, stopped.stdout + stopped.stderr
+    # SIGTERM reached the trainer: it wrote a checkpoint at (or after) its last logged step, then ended
+    last_step = json.loads(metrics.read_text().splitlines()[-1])["global_step"]
+    steps = [int(p.stem.split("_")[1]) for p in (run_root / "stopped" / "checkpoints").glob("ckpt_*.pt")]
+    assert steps and max(steps) >= last_step
+    assert "checkpoint:" in cli(cluster, "logs", job_id).stdout
+
+
 def _alive(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
@@ -85,50 +161,11 @@ def _still_alive(pids, timeout_s: float = 20.0) -> list:
     return [p for p in pids if _alive(p)]
 
 
-def test_submit_to_a_two_node_cluster_spreads_rollout_actors(tmp_path):
-    run_root = tmp_path / "runs"
-    cluster = LocalCluster(nodes=2, cpus_per_node=2)
-    with cluster:
-        env = dict(os.environ, PYTHONPATH=str(ROOT))
-        cmd = [sys.executable, "-m", "launchers.ray_cluster", "submit", "--address", cluster.dashboard_url,
-               "--follow", "--log-every-s", "5", *TINY, "runner.num_workers=0", "runner.total_agent_steps=960",
-               f"runner.run_dir={run_root}", "runner.name=two_nodes"]
-        done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
-        logs = done.stdout + done.stderr
-        assert done.returncode == 0, logs[-4000:]
-        job_id = done.stdout.splitlines()[0]
-        status = subprocess.run([sys.executable, "-m", "launchers.ray_cluster", "status", job_id, "--address",
-                                 cluster.dashboard_url], cwd=ROOT, env=env, capture_output=True, text=True)
-        assert f"{job_id}: SUCCEEDED" in status.stdout, status.stdout + status.stderr
-        node_ids = set(cluster.node_ids)
-
-    run_dir = run_root / "two_nodes"
-    assert list((run_dir / "checkpoints").glob("ckpt_*.pt")), logs[-3000:]
-    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    assert records[-1]["global_step"] >= 960
-    placement = json.loads((run_dir / "cluster.json").read_text())
-    # 2 nodes x 2 CPUs, one CPU for the learner: three rollout actors, spread over both nodes
-    assert {n["node_id"] for n in placement["nodes"]} == node_ids
-    assert len(placement["rollout_workers"]) == 3
-    assert {w["node_id"] for w in placement["rollout_workers"]} == node_ids
-    # ... and both nodes produced fragments, which the learner fetched across nodes
-    assert set(placement["fragments_per_node"]) == node_ids and min(placement["fragments_per_node"].values()) > 0
-    assert placement["learner"]["node_id"] in node_ids and placement["learner"]["device"] == "cpu"
-    assert any(r.get("perf/remote_fragment_fraction", 0) > 0 for r in records)
-
-    # every process the cluster ran is gone: its nodes' own processes and the rollout actors
-    pids = cluster.node_pids + [w["pid"] for w in placement["rollout_workers"]] + [cluster.info["keeper_pid"]]
+def test_stopping_the_cluster_ends_every_process_it_started(cluster, run_root):
+    """Runs last in this file: the nodes' own processes, the keeper and every rollout actor are gone."""
+    actors = [w["pid"] for f in run_root.glob("*/cluster.json") for w in json.loads(f.read_text())["rollout_workers"]]
+    pids = cluster.node_pids + actors + [cluster.info["keeper_pid"]]
+    assert all(_alive(p) for p in cluster.node_pids)
+    cluster.stop()
     assert not _still_alive(pids)
     assert not os.path.exists(cluster.temp_dir)
-
-
-def test_example_cluster_yaml_is_a_valid_ray_cluster_config():
-    """configs/cluster/example.yaml passes the schema `ray up` checks (Ray's autoscaler validator)."""
-    import yaml
-    from ray.autoscaler._private.util import prepare_config, validate_config
-
-    config = yaml.safe_load((ROOT / "configs" / "cluster" / "example.yaml").read_text())
-    validate_config(prepare_config(config))
-    config["max_wrkers"] = 3  # the validator is strict: a typo is caught
-    with pytest.raises(Exception, match="max_wrkers"):
-        validate_config(prepare_config(config))
