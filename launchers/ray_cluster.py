@@ -152,6 +152,13 @@ def cmd_submit(args) -> int:
     if args.learner_gpus not in ("auto", "0", "1"):
         print(f"--learner-gpus must be auto, 0 or 1, got {args.learner_gpus!r}", file=sys.stderr)
         return 2
+    extra_env = {}
+    for item in args.env:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            print(f"--env expects NAME=VALUE, got {item!r}", file=sys.stderr)
+            return 2
+        extra_env[name] = value
     working_dir = Path(args.working_dir).resolve()
     if not (working_dir / "launchers" / "ray_cluster.py").exists():
         print(f"--working-dir {working_dir} does not hold this project (launchers/ray_cluster.py)", file=sys.stderr)
@@ -184,7 +191,7 @@ def cmd_submit(args) -> int:
         "excludes": DEFAULT_EXCLUDES + list(args.exclude),
         "env_vars": {CONFIG_ENV: yaml.safe_dump(config_to_dict(cfg), sort_keys=False),
                      "RAY_JOB_STOP_WAIT_TIME_S": str(int(args.stop_timeout_s)),  # time for the final checkpoint
-                     "PYTHONUNBUFFERED": "1", "WANDB_SILENT": "true"},
+                     "PYTHONUNBUFFERED": "1", "WANDB_SILENT": "true", **extra_env},
     }
     entrypoint = f"{args.python} -m launchers.ray_cluster run --log-every-s {args.log_every_s:g}"
     try:
@@ -340,6 +347,9 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     s.add_argument("--working-dir", default=str(PROJECT_ROOT), help="project directory to ship (default: this one)")
     s.add_argument("--exclude", action="append", default=[], metavar="PATTERN",
                    help=f"also leave out these paths (gitignore syntax); always left out: {DEFAULT_EXCLUDES}")
+    s.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
+                   help="an environment variable for the run on the cluster, e.g. WANDB_API_KEY=... for "
+                        "wandb.mode=online (visible to whoever can read the cluster's job list)")
     s.add_argument("--python", default="python", help="Python of the cluster's nodes (default: python)")
     s.add_argument("--log-every-s", type=float, default=30.0, help="seconds between progress lines in the logs")
     s.add_argument("--stop-timeout-s", type=float, default=60.0,

@@ -38,6 +38,11 @@ def test_config_errors_fail_before_contacting_the_cluster(override, names, capsy
     assert "cannot reach" not in err
 
 
+def test_malformed_env_option_is_a_usage_error(capsys):
+    assert main(["submit", "--address", "http://127.0.0.1:9", "--env", "NO_EQUALS_SIGN", *TINY]) == 2
+    assert "NAME=VALUE" in capsys.readouterr().err
+
+
 def test_unreachable_address_is_reported(capsys):
     assert main(["submit", "--address", "http://127.0.0.1:9", *TINY]) == 1
     assert "cannot reach the Ray Jobs API at http://127.0.0.1:9" in capsys.readouterr().err
