@@ -13,10 +13,13 @@ specialise on the dtype)::
 
 Per swarm: ``contact [E, N, N] uint8`` (pair a < b touching at the last step), ``room_contact [M]``,
 ``rng [E] uint64`` (SplitMix64 streams, see ``quad_env.rng``), ``step_count [E]`` and the episode
-accumulators.
+accumulators. Obstacles: ``obst [E, G, G] uint8`` (1 = a cylinder on the centre of grid cell (ix, iy),
+cell ix spanning x in [x0 + ix * cell, x0 + (ix + 1) * cell)) and ``obst_contact [M] uint8`` (the drone
+touched a cylinder at the last step). Only the cells within reach of a drone are looked at.
 
 One control step of one swarm (``step_kernel``):
-  1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls);
+  1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls,
+     cylinders);
   2. every 50th step (config): re-orthonormalise the rotations;
   3. one pass over pairs a < b: new contacts, collision response, proximity sums, downwash impulses;
   4. one pass over drones: K nearest neighbours (partial selection), observation row and reward terms.
@@ -34,7 +37,8 @@ from quad_env.params import (
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
     I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
-    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE,
+    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
+    F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBSTACLES, SDF_SPACING,
 )
 from quad_env.rng import normal_from, normal_pair, uniform
 
@@ -52,7 +56,9 @@ ACC_DIST_TAIL3 = 13  # sum over the last-3-s steps of the mean distance to goal
 ACC_TAIL3_STEPS = 14
 ACC_COLL_GRACE = 15  # new drone-drone contacts (pairs) after the grace period
 ACC_ROOM_GRACE = 16  # new room contacts (drones) after the grace period
-NUM_ACC = 17
+ACC_OBST = 17  # new drone-obstacle contacts (drones)
+ACC_OBST_GRACE = 18  # new drone-obstacle contacts (drones) after the grace period
+NUM_ACC = 19
 
 # Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success and IColR metrics.
 SUCCESS_WINDOW = 5  # a drone has reached its goal when its mean distance over this many steps ...
@@ -61,7 +67,12 @@ AG_RING = 0  # SUCCESS_WINDOW columns: the latest distances to goal (ring buffer
 AG_SINCE_JUMP = 5  # steps recorded since the last goal jump (or the episode start)
 AG_REACHED = 6  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
 AG_COLL_GRACE = 7  # new drone-drone contacts of this drone after the grace period
-NUM_AGENT_ACC = 8
+AG_OBST_GRACE = 8  # new drone-obstacle contacts of this drone after the grace period
+NUM_AGENT_ACC = 9
+
+# advance_drone's return value: what the drone touched during the control step (bit flags).
+TOUCHED_ROOM = 1
+TOUCHED_OBSTACLE = 2
 
 
 # ====================================================================== single drone
@@ -76,15 +87,54 @@ def _bounce(p, v, lo, hi, restitution):
     return p, v, 0
 
 
+@njit(cache=True, inline="always")
+def _cell_range(x, reach, x0, cell, n_cells):
+    """First and last grid cell (clipped to the grid) that overlap [x - reach, x + reach]; empty if lo > hi."""
+    lo = max(int(np.floor((x - reach - x0) / cell)), 0)
+    hi = min(int(np.floor((x + reach - x0) / cell)), n_cells - 1)
+    return lo, hi
+
+
+@njit(cache=True, inline="always")
+def _push_out_of_cylinders(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells, restitution):
+    """A drone whose centre is closer than ``contact_r`` to a cylinder axis is put back on the contact circle
+    along the radius, and its inward radial speed is reversed and damped (as at a wall). Only the cells
+    within ``contact_r`` are looked at (config validation keeps the contact discs of two cylinders apart).
+    Returns (px, py, vx, vy, 1 if it touched)."""
+    hit = 0
+    ix_lo, ix_hi = _cell_range(px, contact_r, x0, cell, n_cells)
+    iy_lo, iy_hi = _cell_range(py, contact_r, x0, cell, n_cells)
+    for ix in range(ix_lo, ix_hi + 1):
+        for iy in range(iy_lo, iy_hi + 1):
+            if obst[e, ix, iy] == 0:
+                continue
+            cx = x0 + (ix + 0.5) * cell
+            cy = x0 + (iy + 0.5) * cell
+            dx, dy = px - cx, py - cy
+            d2 = dx * dx + dy * dy
+            if d2 < contact_r * contact_r:
+                d = np.sqrt(d2)
+                nx, ny = (dx / d, dy / d) if d > 0.0 else (1.0, 0.0)
+                px, py = cx + contact_r * nx, cy + contact_r * ny
+                vn = vx * nx + vy * ny
+                if vn < 0.0:  # moving into the cylinder
+                    vx -= (1.0 + restitution) * vn * nx
+                    vy -= (1.0 + restitution) * vn * ny
+                hit = 1
+    return px, py, vx, vy, hit
+
+
 @njit(cache=True)
-def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
-    """``substeps`` physics steps of drone ``i`` under ``action[i]``; returns 1 if it touched the room.
+def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, obst):
+    """``substeps`` physics steps of drone ``i`` under ``action[i]``; returns what it touched during them
+    (bit flags TOUCHED_ROOM, TOUCHED_OBSTACLE).
 
     Per physics step (explicit Euler for position, velocity and body rates, exact rotation update):
       motor speed w += gain (sqrt(cmd) - w);  thrust fraction f = clip(w^2 + cmd * ou, 0, 1)
       I w' = tau - w x I w  (rates clipped to +-omega_max);  R <- R exp(dt [w]_x)  (new rates)
       a = R [0, 0, sum T] / m - g e_z - (drag / m) v;  x += dt v;  v += dt a
-    then floor (land: zero velocity and rates, level the attitude keeping yaw) and walls (bounce).
+    then floor (land: zero velocity and rates, level the attitude keeping yaw), walls (bounce) and
+    cylinders (``obst``, if obstacles are on: bounce off the surface, like a wall).
     """
     dt = fp[F_DT]
     gain = fp[F_MOTOR_GAIN]
@@ -99,6 +149,8 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
     theta, sigma = fp[F_OU_THETA], fp[F_OU_SIGMA]
     floor_z, half, height, wall_rest = fp[F_FLOOR_Z], fp[F_ROOM_HALF], fp[F_ROOM_H], fp[F_WALL_REST]
     noise = ip[I_THRUST_NOISE] != 0
+    use_obst = ip[I_OBSTACLES] != 0
+    x0, cell, contact_r, n_cells = fp[F_OBST_ORIGIN], fp[F_OBST_CELL], fp[F_OBST_CONTACT_R], ip[I_OBST_CELLS]
 
     # Commands in [0, 1]; the motors track the rotor speed sqrt(cmd).
     c0 = 0.5 * (min(max(action[i, 0], -1.0), 1.0) + 1.0)
@@ -220,6 +272,10 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
         touched |= hit
         py, vy, hit = _bounce(py, vy, -half, half, wall_rest)
         touched |= hit
+        if use_obst:
+            px, py, vx, vy, hit = _push_out_of_cylinders(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells,
+                                                         wall_rest)
+            touched |= TOUCHED_OBSTACLE * hit
 
     rng[e] = stream
     motor[i, 0], motor[i, 1], motor[i, 2], motor[i, 3] = w0, w1, w2, w3
@@ -389,15 +445,63 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
 
 # ====================================================================== observation and reward
 @njit(cache=True)
-def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py, pz, d2row, rng, fp, ip,
-                  obs, rew, terms, nb_idx, nb_d2, with_reward):
+def obstacle_field(e, x, y, obst, fp, ip, row, start):
+    """The obstacle field of a drone at (x, y): ``row[start + 3 * a + b]`` = signed horizontal distance from the
+    point (x + (a - 1) h, y + (b - 1) h), h = SDF_SPACING, to the nearest cylinder surface of swarm ``e``
+    (negative inside), clipped to at most ``obstacle_sdf_max``.
+
+    Two passes over the cells within reach: the first finds the nearest axis (squared distances only), the
+    second evaluates the 9 points for the cylinders that can be nearest to one of them (axis distance within
+    2 h sqrt(2) of the nearest): usually one.
+    """
+    x0, cell, radius, smax = fp[F_OBST_ORIGIN], fp[F_OBST_CELL], fp[F_OBST_R], fp[F_OBST_SDF_MAX]
+    n_cells = ip[I_OBST_CELLS]
+    h = SDF_SPACING
+    for k in range(9):
+        row[start + k] = smax
+    reach = smax + radius + 1.5 * h  # a grid point is at most h sqrt(2) < 1.5 h from the drone
+    ix_lo, ix_hi = _cell_range(x, reach, x0, cell, n_cells)
+    iy_lo, iy_hi = _cell_range(y, reach, x0, cell, n_cells)
+    nearest2 = np.inf
+    for ix in range(ix_lo, ix_hi + 1):
+        for iy in range(iy_lo, iy_hi + 1):
+            if obst[e, ix, iy] != 0:
+                dx, dy = x - (x0 + (ix + 0.5) * cell), y - (x0 + (iy + 0.5) * cell)
+                nearest2 = min(nearest2, dx * dx + dy * dy)
+    if nearest2 == np.inf:
+        return
+    # Grid points lie within h sqrt(2) of the drone, so a cylinder whose axis is more than 2 h sqrt(2) < 3 h
+    # farther from the drone than the nearest axis is farther from every grid point too.
+    limit = np.sqrt(nearest2) + 3.0 * h
+    limit2 = limit * limit
+    for ix in range(ix_lo, ix_hi + 1):
+        for iy in range(iy_lo, iy_hi + 1):
+            if obst[e, ix, iy] == 0:
+                continue
+            cx, cy = x0 + (ix + 0.5) * cell, x0 + (iy + 0.5) * cell
+            if (x - cx) * (x - cx) + (y - cy) * (y - cy) > limit2:
+                continue
+            for a in range(3):
+                gx = x + (a - 1) * h - cx
+                for b in range(3):
+                    gy = y + (b - 1) * h - cy
+                    d = np.sqrt(gx * gx + gy * gy) - radius
+                    if d < row[start + 3 * a + b]:
+                        row[start + 3 * a + b] = d
+
+
+@njit(cache=True)
+def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, d2row, rng, fp, ip,
+                  obs, rew, terms, nb_idx, nb_d2, with_reward, obst):
     """Observation rows (and, if ``with_reward``, reward terms) of every drone of swarm ``e``.
 
     Neighbours: the K nearest other drones by centre distance, ties broken by the lower index: the
     squared distances to all N drones are computed in one vectorised loop (positions from
     ``gather_positions``), then one scan inserts into a K-slot sorted list (O(N K) worst case, O(N)
     typical), never sorting all N.
-    Slots beyond the real neighbours or the sensing radius are zero with mask 0.
+    Slots beyond the real neighbours or the sensing radius are zero with mask 0. With obstacles on, the
+    obstacle field (``obstacle_field``, no sensor noise) ends the row.
+    ``new_coll``, ``new_obst`` [N]: new drone-drone and drone-obstacle contacts of each drone (rewards).
     Returns the swarm's mean distance to goal.
     """
     n_agents = ip[I_N]
@@ -412,6 +516,9 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
     dt = fp[F_CTRL_DT]
     c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
     c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
+    c_obst = fp[F_C_OBST]
+    use_obst = ip[I_OBSTACLES] != 0
+    field_start = mask_start + k_slots
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -498,8 +605,11 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
                 for q in range(nb_dim):
                     row[off + q] = 0.0
                 row[mask_start + k] = 0.0
-        for q in range(mask_start + k_slots, ip[I_OBS_DIM]):
-            row[q] = 0.0  # fields of later issues (obstacle field)
+        if use_obst:
+            obstacle_field(e, xi, yi, obst, fp, ip, row, field_start)
+        else:
+            for q in range(field_start, ip[I_OBS_DIM]):
+                row[q] = 0.0  # an obstacle layout with obstacles switched off (kernel tests) reads zeros
 
         # ---- reward terms (true state, not the noisy observation)
         if with_reward:
@@ -509,7 +619,7 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
             u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
             u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
             r_pos = -c_pos * dist
-            r_coll = -c_coll * new_coll[a]
+            r_coll = -c_coll * new_coll[a] - c_obst * new_obst[a]
             r_prox = -c_prox * prox[a]
             r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
             r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
@@ -524,11 +634,11 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
 
 # ====================================================================== episode metrics
 @njit(cache=True)
-def agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agents):
+def agent_metrics(e, pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents):
     """Per-drone success bookkeeping of swarm ``e`` after a step: the distance to goal enters a ring of the
     last SUCCESS_WINDOW steps; once the ring holds that many steps since the last goal jump and their mean
     is below SUCCESS_RADIUS, the drone has reached its goal. A jump (``jumped[e]``) empties the rings and
-    clears "reached". New drone-drone contacts after the grace period are counted per drone."""
+    clears "reached". New drone-drone and drone-obstacle contacts after the grace period are counted per drone."""
     base = e * n_agents
     if jumped[e] != 0:
         for a in range(n_agents):
@@ -550,22 +660,28 @@ def agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agen
                 agent_acc[i, AG_REACHED] = 1.0
         if after_grace:
             agent_acc[i, AG_COLL_GRACE] += new_coll[a]
+            agent_acc[i, AG_OBST_GRACE] += new_obst[a]
 
 
 # ====================================================================== whole-batch kernels
 @njit(cache=True)
 def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng, step_count,
                 fp, ip, obs, rew, terms, done, diverged, acc):
-    """``step_with_metrics_kernel`` without the per-drone metrics (physics tests, model validation)."""
+    """``step_with_metrics_kernel`` without the per-drone metrics and without obstacles (``ip`` must have them
+    off): physics tests, model validation."""
     jumped = np.zeros(step_count.shape[0], np.uint8)
     agent_acc = np.zeros((pos.shape[0], NUM_AGENT_ACC), np.float64)
+    obst = np.zeros((step_count.shape[0], 1, 1), np.uint8)
+    obst_contact = np.zeros(pos.shape[0], np.uint8)
     return step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                                    step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc)
+                                    step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc,
+                                    obst, obst_contact)
 
 
 @njit(cache=True)
 def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                             step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc):
+                             step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc, obst,
+                             obst_contact):
     """One control step of all E swarms (see the module docstring). Returns the number of swarms done.
 
     ``done[e]`` = the episode of swarm e reached its length (truncation). ``diverged[e]`` = a drone's
@@ -573,7 +689,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     rows are 0, and it is reported done; the caller decides (raise or reset).
     Episode metrics go to ``acc [E, NUM_ACC]`` and ``agent_acc [M, NUM_AGENT_ACC]``; ``jumped[e] = 1``
     (set by the scenario: the goals jumped before this step) restarts the swarm's success windows and is
-    cleared here.
+    cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_contact`` [M] the drones touching one.
     """
     n_agents = ip[I_N]
     num_envs = step_count.shape[0]
@@ -581,6 +697,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     nb_idx = np.zeros(max(k_slots, 1), np.int64)
     nb_d2 = np.zeros(max(k_slots, 1), np.float64)
     new_coll = np.zeros(n_agents, np.float64)
+    new_obst = np.zeros(n_agents, np.float64)
     prox = np.zeros(n_agents, np.float64)
     px, py, pz = np.zeros(n_agents), np.zeros(n_agents), np.zeros(n_agents)
     row = np.zeros(n_agents)
@@ -593,12 +710,20 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
         bad = False
         for a in range(n_agents):
             i = base + a
-            touched = advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip)
-            if touched != 0 and room_contact[i] == 0:
+            touched = advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, obst)
+            room = touched & TOUCHED_ROOM
+            if room != 0 and room_contact[i] == 0:
                 acc[e, ACC_ROOM] += 1.0
                 if after_grace:
                     acc[e, ACC_ROOM_GRACE] += 1.0
-            room_contact[i] = touched
+            room_contact[i] = room
+            hit = 1 if touched & TOUCHED_OBSTACLE else 0
+            new_obst[a] = 1.0 if hit > obst_contact[i] else 0.0  # a new contact: not touching at the last step
+            if new_obst[a] != 0.0:
+                acc[e, ACC_OBST] += 1.0
+                if after_grace:
+                    acc[e, ACC_OBST_GRACE] += 1.0
+            obst_contact[i] = hit
             if reortho:
                 reorthonormalise(i, rot)
             if not _is_finite_drone(i, pos, vel, rot, omega, motor):
@@ -616,8 +741,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
         gather_positions(e, pos, n_agents, px, py, pz)
         n_new = pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, px, py, pz, row)
         acc[e, ACC_COLLISIONS] += n_new
-        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py, pz, row, rng,
-                                  fp, ip, obs, rew, terms, nb_idx, nb_d2, True)
+        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, row,
+                                  rng, fp, ip, obs, rew, terms, nb_idx, nb_d2, True, obst)
         # ---- episode statistics
         for a in range(n_agents):
             i = base + a
@@ -636,14 +761,14 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
             acc[e, ACC_TAIL1_STEPS] += 1.0
         if after_grace:
             acc[e, ACC_COLL_GRACE] += n_new
-        agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agents)
+        agent_metrics(e, pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents)
         if done[e]:
             n_done += 1
     return n_done
 
 
 @njit(cache=True)
-def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs):
+def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst):
     """Observation rows of the swarms with ``selected[e]`` (after a reset or a state change)."""
     n_agents = ip[I_N]
     k_slots = ip[I_K]
@@ -658,8 +783,8 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs):
     for e in range(selected.shape[0]):
         if selected[e]:
             gather_positions(e, pos, n_agents, px, py, pz)
-            observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, px, py, pz, row, rng,
-                          fp, ip, obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False)
+            observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, dummy_vec, px, py, pz,
+                          row, rng, fp, ip, obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False, obst)
 
 
 @njit(cache=True)
@@ -686,8 +811,8 @@ def refresh_contacts_kernel(selected, pos, contact, fp, ip):
 def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
                  spawn_half, spawn_min_z, spawn_min_sep):
     """Start a new episode for the selected swarms: drones at rest, motors off, random yaw, positions
-    uniform in the box ``center +- spawn_half`` (z range cut to [spawn_min_z, ceiling]), at least
-    ``spawn_min_sep`` apart (rejection sampling, 100 tries per drone, then accepted anyway)."""
+    uniform in the box ``center[e] +- spawn_half[e]`` (per axis; z range cut to [spawn_min_z, ceiling]), at
+    least ``spawn_min_sep`` apart (rejection sampling, 100 tries per drone, then accepted anyway)."""
     n_agents = ip[I_N]
     half = fp[F_ROOM_HALF]
     height = fp[F_ROOM_H]
@@ -696,14 +821,15 @@ def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact
         if not selected[e]:
             continue
         base = e * n_agents
-        z_lo = max(center[e, 2] - spawn_half, spawn_min_z)
-        z_hi = min(max(center[e, 2] + spawn_half, z_lo), height)
+        hx, hy, hz = spawn_half[e, 0], spawn_half[e, 1], spawn_half[e, 2]
+        z_lo = max(center[e, 2] - hz, spawn_min_z)
+        z_hi = min(max(center[e, 2] + hz, z_lo), height)
         for a in range(n_agents):
             i = base + a
             x, y, z = 0.0, 0.0, 0.0
             for _ in range(100):
-                x = min(max(center[e, 0] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
-                y = min(max(center[e, 1] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
+                x = min(max(center[e, 0] + hx * (2.0 * uniform(rng, e) - 1.0), -half), half)
+                y = min(max(center[e, 1] + hy * (2.0 * uniform(rng, e) - 1.0), -half), half)
                 z = z_lo + (z_hi - z_lo) * uniform(rng, e)
                 ok = True
                 for b in range(a):

@@ -45,7 +45,13 @@ F_C_PROX = 31
 F_PROX_DIST = 32
 F_C_OMEGA = 33
 F_C_ACTION = 34
-NUM_F = 35
+F_OBST_ORIGIN = 35  # x (= y) of the obstacle grid's lower corner, m
+F_OBST_CELL = 36  # cell side, m
+F_OBST_R = 37  # cylinder radius, m
+F_OBST_CONTACT_R = 38  # axis distance at which a drone touches a cylinder: radius + collision_dist / 2, m
+F_OBST_SDF_MAX = 39  # the obstacle field is clipped to at most this, m
+F_C_OBST = 40  # penalty per new drone-obstacle contact
+NUM_F = 41
 
 # ---------------------------------------------------------------- int parameters (int64 [NUM_I])
 I_N = 0  # drones per swarm
@@ -64,9 +70,12 @@ I_NB_DIM = 12  # entries per neighbour block
 I_TAIL1_STEPS = 13  # control steps in the last 1 s (dist_last_1s)
 I_TAIL3_STEPS = 14  # control steps in the last 3 s (dist_last_3s)
 I_GRACE_STEPS = 15  # collisions in the first this many control steps (1.5 s) do not count for the metrics
-NUM_I = 16
+I_OBSTACLES = 16  # 1: cylinders (physics, contacts, obstacle field)
+I_OBST_CELLS = 17  # cells per side of the obstacle grid
+NUM_I = 18
 
 METRIC_GRACE_S = 1.5  # grace period of the collision metrics, s
+SDF_SPACING = 0.1  # the obstacle field samples a 3 x 3 horizontal grid this far apart (m) around the drone
 
 # Reward terms, in the order of the kernel's ``terms`` rows.
 REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action")
@@ -113,6 +122,12 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     f[F_PROX_DIST] = r.proximity_dist
     f[F_C_OMEGA] = r.omega
     f[F_C_ACTION] = r.action
+    f[F_OBST_ORIGIN] = -0.5 * cfg.obstacle_grid_cells * cfg.obstacle_cell_size
+    f[F_OBST_CELL] = cfg.obstacle_cell_size
+    f[F_OBST_R] = 0.5 * cfg.obstacle_diameter
+    f[F_OBST_CONTACT_R] = 0.5 * cfg.obstacle_diameter + 0.5 * p.collision_dist
+    f[F_OBST_SDF_MAX] = cfg.obstacle_sdf_max
+    f[F_C_OBST] = r.obstacle_collision
 
     i = np.zeros(NUM_I, np.int64)
     i[I_N] = cfg.num_agents
@@ -131,4 +146,6 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     i[I_TAIL1_STEPS] = min(cfg.episode_steps, int(round(1.0 / cfg.control_dt)))
     i[I_TAIL3_STEPS] = min(cfg.episode_steps, int(round(3.0 / cfg.control_dt)))
     i[I_GRACE_STEPS] = int(round(METRIC_GRACE_S / cfg.control_dt))
+    i[I_OBSTACLES] = int(cfg.obstacles)
+    i[I_OBST_CELLS] = cfg.obstacle_grid_cells
     return f, i

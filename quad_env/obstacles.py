@@ -1,0 +1,80 @@
+"""Obstacle layouts: vertical cylinders (floor to ceiling) on a square grid centred in the room.
+
+The grid has G x G cells of side ``cell`` (``EnvConfig.obstacle_grid_cells``, ``obstacle_cell_size``); cell
+(ix, iy) spans x in [x0 + ix cell, x0 + (ix + 1) cell) (x0 = -G cell / 2, the same for y) and, when
+occupied, holds a cylinder of diameter ``obstacle_diameter`` on its centre. A layout is ``uint8 [E, G, G]``,
+one grid per swarm, drawn anew at every reset from the swarm's own random stream: every cell is occupied
+with probability ``obstacle_density``, cells visited in (ix, iy) row-major order, so one seed gives one
+layout.
+
+Spawn points and goals are kept out of the cylinders by a single rule, whatever the scenario: after the
+goals and the spawn points of an episode are placed, every cylinder whose surface is closer than
+``OBSTACLE_CLEARANCE`` (horizontally) to a spawn point or a goal is removed ("obstacles yield"). The
+obstacle scenarios (o_random, o_static_same_goal) spawn and aim outside the obstacle grid, so nothing is
+removed there and the density is the configured one. Goals that move during an episode (dynamic scenarios
+run with obstacles on) are not checked.
+
+The physics (contacts, bounce) and the observation field live in ``quad_env.kernels``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from quad_env.config import EnvConfig
+from quad_env.rng import uniform
+
+OBSTACLE_CLEARANCE = 0.2  # m between a cylinder surface and any spawn point or goal of the episode
+
+
+@njit(cache=True)
+def draw_obstacles(selected, obst, rng, density):
+    """Occupy every cell of the selected swarms' grids with probability ``density`` (one draw per cell)."""
+    n = obst.shape[1]
+    for e in range(selected.shape[0]):
+        if not selected[e]:
+            continue
+        for ix in range(n):
+            for iy in range(n):
+                obst[e, ix, iy] = 1 if uniform(rng, e) < density else 0
+
+
+@njit(cache=True)
+def _clear_around(e, x, y, obst, x0, cell, keep_out):
+    """Remove the cylinders of swarm ``e`` whose axis is closer than ``keep_out`` to (x, y)."""
+    n = obst.shape[1]
+    ix_lo = max(int(np.floor((x - keep_out - x0) / cell)), 0)
+    ix_hi = min(int(np.floor((x + keep_out - x0) / cell)), n - 1)
+    iy_lo = max(int(np.floor((y - keep_out - x0) / cell)), 0)
+    iy_hi = min(int(np.floor((y + keep_out - x0) / cell)), n - 1)
+    for ix in range(ix_lo, ix_hi + 1):
+        for iy in range(iy_lo, iy_hi + 1):
+            dx = x - (x0 + (ix + 0.5) * cell)
+            dy = y - (x0 + (iy + 0.5) * cell)
+            if dx * dx + dy * dy < keep_out * keep_out:
+                obst[e, ix, iy] = 0
+
+
+@njit(cache=True)
+def clear_spawns_and_goals(selected, obst, pos, goal, n_agents, x0, cell, radius, clearance):
+    """The "obstacles yield" rule: no cylinder surface within ``clearance`` of a spawn point or a goal."""
+    keep_out = radius + clearance
+    for e in range(selected.shape[0]):
+        if not selected[e]:
+            continue
+        for a in range(n_agents):
+            i = e * n_agents + a
+            _clear_around(e, pos[i, 0], pos[i, 1], obst, x0, cell, keep_out)
+            _clear_around(e, goal[i, 0], goal[i, 1], obst, x0, cell, keep_out)
+
+
+def grid_origin(cfg: EnvConfig) -> float:
+    """x (and y) of the grid's lower corner: the grid is centred in the room."""
+    return -0.5 * cfg.obstacle_grid_cells * cfg.obstacle_cell_size
+
+
+def obstacle_centers(grid: np.ndarray, cfg: EnvConfig) -> np.ndarray:
+    """Axes (x, y) of the cylinders of one swarm's grid ``[G, G]``: float64 ``[C, 2]`` (row-major cell order)."""
+    ix, iy = np.nonzero(grid)
+    x0, cell = grid_origin(cfg), cfg.obstacle_cell_size
+    return np.stack([x0 + (ix + 0.5) * cell, x0 + (iy + 0.5) * cell], axis=1).astype(np.float64)
