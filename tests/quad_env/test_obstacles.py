@@ -369,3 +369,28 @@ def test_every_encoder_builds_an_actor_critic_on_obstacle_observations():
         moved = obs.clone()
         moved[:, field.start:field.stop] -= 0.5  # a cylinder closer by: the policy sees it
         assert not torch.allclose(model(moved)[0], mean), name
+
+
+# ---------------------------------------------------------------- pictures
+def test_pictures_draw_the_cylinders_and_mark_every_obstacle_hit(tmp_path, capsys):
+    from PIL import Image
+
+    from quad_env.render import main, record_episode, save_animation_gif, save_trajectory_png
+
+    cfg = EnvConfig(num_agents=8, scenario="o_static_same_goal", obstacles=True)
+    ep = record_episode(cfg, "controller", steps=300, seed=1)  # flies straight at the goal, through the grid
+    assert len(ep.cylinders) >= 5 and ep.cylinder_radius == RADIUS
+    assert len(ep.obstacle_hits) == ep.stats["obstacle_collisions"] >= 1  # one mark per new contact
+    for t, x, y, z in ep.obstacle_hits:  # marks are drones on a cylinder surface at that step
+        d = np.linalg.norm(ep.cylinders[:, None] - np.array([x, y])[None, None], axis=-1).min()
+        assert CONTACT - 1e-9 <= d <= CONTACT + 0.05
+        assert np.isclose(np.linalg.norm(ep.pos[int(t)] - [x, y, z], axis=1), 0).any()
+    png = save_trajectory_png(ep, str(tmp_path / "o.png"))
+    gif = save_animation_gif(ep, str(tmp_path / "o.gif"), frame_every=100)
+    with Image.open(gif) as im:
+        assert im.n_frames == 4
+    with open(png, "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    paths = main(["--scenario", "o_random", "--out", str(tmp_path), "--steps", "8", "--num-agents", "2",
+                  "--frame-every", "4"])  # the o_* scenarios switch obstacles on in the command
+    assert all(p.startswith(str(tmp_path)) for p in paths) and "obstacles" in capsys.readouterr().out
