@@ -15,7 +15,7 @@ Per swarm: ``contact [E, N, N] uint8`` (pair a < b touching at the last step), `
 ``rng [E] uint64`` (SplitMix64 streams, see ``quad_env.rng``), ``step_count [E]`` and the episode
 accumulators. Obstacles: ``obst [E, G, G] uint8`` (1 = a cylinder on the centre of grid cell (ix, iy),
 cell ix spanning x in [x0 + ix * cell, x0 + (ix + 1) * cell)) and ``obst_contact [M] uint8`` (the drone
-touched a cylinder at the last step). Only the cells within reach of a drone are looked at.
+touched a cylinder at the last step). Only the cells near a drone are looked at.
 
 One control step of one swarm (``step_kernel``):
   1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls,
@@ -88,40 +88,29 @@ def _bounce(p, v, lo, hi, restitution):
 
 
 @njit(cache=True, inline="always")
-def _cell_range(x, reach, x0, cell, n_cells):
-    """First and last grid cell (clipped to the grid) that overlap [x - reach, x + reach]; empty if lo > hi."""
-    lo = max(int(np.floor((x - reach - x0) / cell)), 0)
-    hi = min(int(np.floor((x + reach - x0) / cell)), n_cells - 1)
-    return lo, hi
-
-
-@njit(cache=True, inline="always")
-def _push_out_of_cylinders(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells, restitution):
+def _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells, restitution):
     """A drone whose centre is closer than ``contact_r`` to a cylinder axis is put back on the contact circle
-    along the radius, and its inward radial speed is reversed and damped (as at a wall). Only the cells
-    within ``contact_r`` are looked at (config validation keeps the contact discs of two cylinders apart).
-    Returns (px, py, vx, vy, 1 if it touched)."""
-    hit = 0
-    ix_lo, ix_hi = _cell_range(px, contact_r, x0, cell, n_cells)
-    iy_lo, iy_hi = _cell_range(py, contact_r, x0, cell, n_cells)
-    for ix in range(ix_lo, ix_hi + 1):
-        for iy in range(iy_lo, iy_hi + 1):
-            if obst[e, ix, iy] == 0:
-                continue
-            cx = x0 + (ix + 0.5) * cell
-            cy = x0 + (iy + 0.5) * cell
-            dx, dy = px - cx, py - cy
-            d2 = dx * dx + dy * dy
-            if d2 < contact_r * contact_r:
-                d = np.sqrt(d2)
-                nx, ny = (dx / d, dy / d) if d > 0.0 else (1.0, 0.0)
-                px, py = cx + contact_r * nx, cy + contact_r * ny
-                vn = vx * nx + vy * ny
-                if vn < 0.0:  # moving into the cylinder
-                    vx -= (1.0 + restitution) * vn * nx
-                    vy -= (1.0 + restitution) * vn * ny
-                hit = 1
-    return px, py, vx, vy, hit
+    along the radius, and its inward radial speed is reversed and damped (as at a wall). Config validation
+    keeps contact_r below half a cell, so only the cylinder of the drone's own cell can be touched: one
+    lookup. Returns (px, py, vx, vy, 1 if it touched)."""
+    fx, fy = (px - x0) / cell, (py - x0) / cell
+    if not (0.0 <= fx < n_cells and 0.0 <= fy < n_cells):
+        return px, py, vx, vy, 0  # outside the grid (or not finite)
+    ix, iy = int(fx), int(fy)
+    if obst[e, ix, iy] == 0:
+        return px, py, vx, vy, 0
+    cx, cy = x0 + (ix + 0.5) * cell, x0 + (iy + 0.5) * cell
+    dx, dy = px - cx, py - cy
+    d2 = dx * dx + dy * dy
+    if d2 >= contact_r * contact_r:
+        return px, py, vx, vy, 0
+    d = np.sqrt(d2)
+    nx, ny = (dx / d, dy / d) if d > 0.0 else (1.0, 0.0)
+    vn = vx * nx + vy * ny
+    if vn < 0.0:  # moving into the cylinder
+        vx -= (1.0 + restitution) * vn * nx
+        vy -= (1.0 + restitution) * vn * ny
+    return cx + contact_r * nx, cy + contact_r * ny, vx, vy, 1
 
 
 @njit(cache=True)
@@ -273,8 +262,8 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, ob
         py, vy, hit = _bounce(py, vy, -half, half, wall_rest)
         touched |= hit
         if use_obst:
-            px, py, vx, vy, hit = _push_out_of_cylinders(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells,
-                                                         wall_rest)
+            px, py, vx, vy, hit = _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells,
+                                                        wall_rest)
             touched |= TOUCHED_OBSTACLE * hit
 
     rng[e] = stream
@@ -444,50 +433,63 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
 
 
 # ====================================================================== observation and reward
+@njit(cache=True, inline="always")
+def _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy):
+    """Squared distances of the 9 grid points around (x, y) to their nearest axis, updated with axis (cx, cy)."""
+    dx0, dx1, dx2 = x - h - cx, x - cx, x + h - cx
+    dy0, dy1, dy2 = y - h - cy, y - cy, y + h - cy
+    sx0, sx1, sx2 = dx0 * dx0, dx1 * dx1, dx2 * dx2
+    sy0, sy1, sy2 = dy0 * dy0, dy1 * dy1, dy2 * dy2
+    return (min(b0, sx0 + sy0), min(b1, sx0 + sy1), min(b2, sx0 + sy2),
+            min(b3, sx1 + sy0), min(b4, sx1 + sy1), min(b5, sx1 + sy2),
+            min(b6, sx2 + sy0), min(b7, sx2 + sy1), min(b8, sx2 + sy2))
+
+
 @njit(cache=True)
 def obstacle_field(e, x, y, obst, fp, ip, row, start):
     """The obstacle field of a drone at (x, y): ``row[start + 3 * a + b]`` = signed horizontal distance from the
     point (x + (a - 1) h, y + (b - 1) h), h = SDF_SPACING, to the nearest cylinder surface of swarm ``e``
     (negative inside), clipped to at most ``obstacle_sdf_max``.
 
-    Two passes over the cells within reach: the first finds the nearest axis (squared distances only), the
-    second evaluates the 9 points for the cylinders that can be nearest to one of them (axis distance within
-    2 h sqrt(2) of the nearest): usually one.
+    Rings of cells around the drone's cell (ring k: Chebyshev cell distance k) are scanned outwards, keeping
+    the 9 points' squared distances to their nearest axis. Every axis in ring k or beyond is at least
+    (k - 1/2) cell from the drone and a grid point is at most h sqrt(2) from it, so the scan stops once that
+    bound exceeds the nearest axis found by 2 h sqrt(2), or exceeds obstacle_sdf_max + radius + h sqrt(2)
+    (whatever lies farther is clipped): usually after ring 1 or 2. Only 9 square roots per drone.
     """
     x0, cell, radius, smax = fp[F_OBST_ORIGIN], fp[F_OBST_CELL], fp[F_OBST_R], fp[F_OBST_SDF_MAX]
     n_cells = ip[I_OBST_CELLS]
     h = SDF_SPACING
-    for k in range(9):
-        row[start + k] = smax
-    reach = smax + radius + 1.5 * h  # a grid point is at most h sqrt(2) < 1.5 h from the drone
-    ix_lo, ix_hi = _cell_range(x, reach, x0, cell, n_cells)
-    iy_lo, iy_hi = _cell_range(y, reach, x0, cell, n_cells)
-    nearest2 = np.inf
-    for ix in range(ix_lo, ix_hi + 1):
-        for iy in range(iy_lo, iy_hi + 1):
-            if obst[e, ix, iy] != 0:
-                dx, dy = x - (x0 + (ix + 0.5) * cell), y - (x0 + (iy + 0.5) * cell)
-                nearest2 = min(nearest2, dx * dx + dy * dy)
-    if nearest2 == np.inf:
-        return
-    # Grid points lie within h sqrt(2) of the drone, so a cylinder whose axis is more than 2 h sqrt(2) < 3 h
-    # farther from the drone than the nearest axis is farther from every grid point too.
-    limit = np.sqrt(nearest2) + 3.0 * h
-    limit2 = limit * limit
-    for ix in range(ix_lo, ix_hi + 1):
-        for iy in range(iy_lo, iy_hi + 1):
-            if obst[e, ix, iy] == 0:
-                continue
-            cx, cy = x0 + (ix + 0.5) * cell, x0 + (iy + 0.5) * cell
-            if (x - cx) * (x - cx) + (y - cy) * (y - cy) > limit2:
-                continue
-            for a in range(3):
-                gx = x + (a - 1) * h - cx
-                for b in range(3):
-                    gy = y + (b - 1) * h - cy
-                    d = np.sqrt(gx * gx + gy * gy) - radius
-                    if d < row[start + 3 * a + b]:
-                        row[start + 3 * a + b] = d
+    spread = h * np.sqrt(2.0)  # grid point to drone, at most
+    ci = int(np.floor((x - x0) / cell))  # the drone's cell (may lie outside the grid)
+    cj = int(np.floor((y - x0) / cell))
+    last_ring = max(max(ci, n_cells - 1 - ci), max(cj, n_cells - 1 - cj))  # beyond it: no grid cell
+    inf = np.inf
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = inf, inf, inf, inf, inf, inf, inf, inf, inf
+    nearest2 = inf  # squared distance from the drone to the nearest axis found
+    for k in range(0, last_ring + 1):
+        if k > 0:
+            bound = (k - 0.5) * cell - spread  # lower bound of any grid point's distance to a ring-k axis
+            if bound - radius >= smax or (nearest2 < inf and bound >= np.sqrt(nearest2) + spread):
+                break
+        for i in range(max(ci - k, 0), min(ci + k, n_cells - 1) + 1):
+            edge_row = i == ci - k or i == ci + k
+            step = 1 if edge_row else 2 * k  # inner rows of the ring: only its two side cells
+            for j in range(cj - k, cj + k + 1, max(step, 1)):
+                if j < 0 or j >= n_cells or obst[e, i, j] == 0:
+                    continue
+                cx, cy = x0 + (i + 0.5) * cell, x0 + (j + 0.5) * cell
+                b0, b1, b2, b3, b4, b5, b6, b7, b8 = _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy)
+                nearest2 = min(nearest2, (x - cx) * (x - cx) + (y - cy) * (y - cy))
+    row[start + 0] = min(np.sqrt(b0) - radius, smax)
+    row[start + 1] = min(np.sqrt(b1) - radius, smax)
+    row[start + 2] = min(np.sqrt(b2) - radius, smax)
+    row[start + 3] = min(np.sqrt(b3) - radius, smax)
+    row[start + 4] = min(np.sqrt(b4) - radius, smax)
+    row[start + 5] = min(np.sqrt(b5) - radius, smax)
+    row[start + 6] = min(np.sqrt(b6) - radius, smax)
+    row[start + 7] = min(np.sqrt(b7) - radius, smax)
+    row[start + 8] = min(np.sqrt(b8) - radius, smax)
 
 
 @njit(cache=True)

@@ -7,7 +7,7 @@ import pytest
 from quad_env import EnvConfig, PhysicsConfig, RewardConfig, VecQuadEnv, make_scenario
 from quad_env.kernels import NUM_ACC, NUM_AGENT_ACC, step_with_metrics_kernel
 from quad_env.obstacles import OBSTACLE_CLEARANCE, draw_obstacles, obstacle_centers
-from quad_env.reference import reference_step_obstacles
+from quad_env.reference import reference_obstacle_field, reference_step_obstacles
 from quad_env.rng import seed_streams
 
 RADIUS = 0.3  # default diameter 0.6 m
@@ -182,6 +182,26 @@ def test_obstacle_field_matches_hand_computed_distances(cyl_env):
     grid[0, 2, 4] = 1
     env.set_obstacles(grid)
     np.testing.assert_allclose(sdf_row(env, [-1.0, 0.5])[4], 0.5 - 0.3, atol=1e-6)
+
+
+@pytest.mark.parametrize("density,sdf_max", [(0.05, 8.0), (0.2, 2.0), (0.6, 0.5), (0.0, 2.0)])
+def test_obstacle_field_equals_a_brute_force_reference_everywhere(quiet_cfg, density, sdf_max):
+    """The kernel scans rings of cells around the drone and stops early; the reference takes every cylinder."""
+    E, N = 3, 60
+    cfg = quiet_cfg(num_agents=N, num_neighbors=0, obstacles=True, obstacle_sdf_max=sdf_max)
+    env = VecQuadEnv(cfg, num_envs=E, seed=0)
+    rng = np.random.default_rng(int(density * 100))
+    grid = (rng.uniform(size=(E, 8, 8)) < density).astype(np.uint8)
+    env.set_obstacles(grid)
+    for trial in range(3):
+        pos = np.column_stack([rng.uniform(-5, 5, (E * N, 2)), rng.uniform(0.5, 3, E * N)])
+        env.set_state(pos=pos)
+        field = env.layout.split(env.observe())["obstacle.obstacle_sdf"]
+        for e in range(E):
+            rows = slice(e * N, (e + 1) * N)
+            expected = reference_obstacle_field(pos[rows, :2], obstacle_centers(grid[e], cfg), cfg)
+            np.testing.assert_allclose(field[rows], expected, rtol=0, atol=1e-6)  # (float32 observation)
+    assert density == 0.0 or (field < sdf_max).any()
 
 
 def test_obstacle_field_clip_follows_the_config(hover_env):
