@@ -236,8 +236,8 @@ class EnvConfig:
             raise ValueError(f"env.obstacles must be True or False, got {self.obstacles!r}")
         if not 0 <= self.obstacle_density <= 1:
             raise ValueError(f"env.obstacle_density must be in [0, 1], got {self.obstacle_density!r}")
-        if not isinstance(self.obstacle_grid_cells, int) or self.obstacle_grid_cells < 1:
-            raise ValueError(f"env.obstacle_grid_cells must be an int >= 1, got {self.obstacle_grid_cells!r}")
+        if not isinstance(self.obstacle_grid_cells, int) or not 1 <= self.obstacle_grid_cells <= 256:
+            raise ValueError(f"env.obstacle_grid_cells must be an int in [1, 256], got {self.obstacle_grid_cells!r}")
         if not self.obstacle_cell_size > 0:
             raise ValueError(f"env.obstacle_cell_size must be > 0, got {self.obstacle_cell_size!r}")
         if not self.obstacle_diameter > 0:

@@ -38,7 +38,8 @@ from quad_env.params import (
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
     I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
     I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
-    F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBSTACLES, SDF_SPACING,
+    F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
+    SDF_SPACING,
 )
 from quad_env.rng import normal_from, normal_pair, uniform
 
@@ -88,12 +89,12 @@ def _bounce(p, v, lo, hi, restitution):
 
 
 @njit(cache=True, inline="always")
-def _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells, restitution):
+def _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, inv_cell, contact_r, n_cells, restitution):
     """A drone whose centre is closer than ``contact_r`` to a cylinder axis is put back on the contact circle
     along the radius, and its inward radial speed is reversed and damped (as at a wall). Config validation
     keeps contact_r below half a cell, so only the cylinder of the drone's own cell can be touched: one
     lookup. Returns (px, py, vx, vy, 1 if it touched)."""
-    fx, fy = (px - x0) / cell, (py - x0) / cell
+    fx, fy = (px - x0) * inv_cell, (py - x0) * inv_cell
     if not (0.0 <= fx < n_cells and 0.0 <= fy < n_cells):
         return px, py, vx, vy, 0  # outside the grid (or not finite)
     ix, iy = int(fx), int(fy)
@@ -140,6 +141,7 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, ob
     noise = ip[I_THRUST_NOISE] != 0
     use_obst = ip[I_OBSTACLES] != 0
     x0, cell, contact_r, n_cells = fp[F_OBST_ORIGIN], fp[F_OBST_CELL], fp[F_OBST_CONTACT_R], ip[I_OBST_CELLS]
+    inv_cell = 1.0 / cell
 
     # Commands in [0, 1]; the motors track the rotor speed sqrt(cmd).
     c0 = 0.5 * (min(max(action[i, 0], -1.0), 1.0) + 1.0)
@@ -262,8 +264,8 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, ob
         py, vy, hit = _bounce(py, vy, -half, half, wall_rest)
         touched |= hit
         if use_obst:
-            px, py, vx, vy, hit = _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, contact_r, n_cells,
-                                                        wall_rest)
+            px, py, vx, vy, hit = _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, inv_cell, contact_r,
+                                                        n_cells, wall_rest)
             touched |= TOUCHED_OBSTACLE * hit
 
     rng[e] = stream
@@ -445,11 +447,57 @@ def _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy):
             min(b6, sx2 + sy0), min(b7, sx2 + sy1), min(b8, sx2 + sy2))
 
 
-@njit(cache=True)
-def obstacle_field(e, x, y, obst, fp, ip, row, start):
+@njit(cache=True, inline="always")
+def _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8):
+    row[start + 0] = min(np.sqrt(b0) - radius, smax)
+    row[start + 1] = min(np.sqrt(b1) - radius, smax)
+    row[start + 2] = min(np.sqrt(b2) - radius, smax)
+    row[start + 3] = min(np.sqrt(b3) - radius, smax)
+    row[start + 4] = min(np.sqrt(b4) - radius, smax)
+    row[start + 5] = min(np.sqrt(b5) - radius, smax)
+    row[start + 6] = min(np.sqrt(b6) - radius, smax)
+    row[start + 7] = min(np.sqrt(b7) - radius, smax)
+    row[start + 8] = min(np.sqrt(b8) - radius, smax)
+
+
+@njit(cache=True, inline="always")
+def obstacle_field(e, x, y, obst, obst_index, fp, ip, row, start):
     """The obstacle field of a drone at (x, y): ``row[start + 3 * a + b]`` = signed horizontal distance from the
     point (x + (a - 1) h, y + (b - 1) h), h = SDF_SPACING, to the nearest cylinder surface of swarm ``e``
     (negative inside), clipped to at most ``obstacle_sdf_max``.
+
+    ``obst_index`` (``quad_env.obstacles.index_obstacles``, rebuilt whenever a layout changes) lists, per
+    cell of a lookup grid over the room, the few cylinders that can be nearest to a sample point of a drone
+    in that cell: one lookup, then 9 squared distances per candidate and 9 square roots. A cell with too many
+    candidates (sparse cylinders, large obstacle_sdf_max) says so and the rings of cells are scanned instead.
+    """
+    cell, radius, smax = fp[F_OBST_CELL], fp[F_OBST_R], fp[F_OBST_SDF_MAX]
+    x0, xl, n_cells, n_lookup = fp[F_OBST_ORIGIN], fp[F_OBST_LOOKUP_ORIGIN], ip[I_OBST_CELLS], ip[I_OBST_LOOKUP]
+    inv_cell = 1.0 / cell
+    fu, fv = (x - xl) * inv_cell, (y - xl) * inv_cell
+    if not (0.0 <= fu <= n_lookup and 0.0 <= fv <= n_lookup):  # outside the room (or not finite)
+        _obstacle_field_scan(e, x, y, obst, fp, ip, row, start)
+        return
+    u, v = min(int(fu), n_lookup - 1), min(int(fv), n_lookup - 1)
+    count = np.int64(obst_index[e, u, v, 0])
+    if count >= obst_index.shape[3]:
+        _obstacle_field_scan(e, x, y, obst, fp, ip, row, start)
+        return
+    h = SDF_SPACING
+    shift = 4 if n_cells <= 16 else 8  # quad_env.obstacles.index_spec
+    mask = (1 << shift) - 1
+    inf = np.inf
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = inf, inf, inf, inf, inf, inf, inf, inf, inf
+    for q in range(count):
+        c = np.int64(obst_index[e, u, v, 1 + q])  # (ix << shift) | iy
+        cx, cy = x0 + ((c >> shift) + 0.5) * cell, x0 + ((c & mask) + 0.5) * cell
+        b0, b1, b2, b3, b4, b5, b6, b7, b8 = _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy)
+    _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8)
+
+
+@njit(cache=True)
+def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
+    """``obstacle_field`` without the index.
 
     Rings of cells around the drone's cell (ring k: Chebyshev cell distance k) are scanned outwards, keeping
     the 9 points' squared distances to their nearest axis. Every axis in ring k or beyond is at least
@@ -481,20 +529,12 @@ def obstacle_field(e, x, y, obst, fp, ip, row, start):
                 cx, cy = x0 + (i + 0.5) * cell, x0 + (j + 0.5) * cell
                 b0, b1, b2, b3, b4, b5, b6, b7, b8 = _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy)
                 nearest2 = min(nearest2, (x - cx) * (x - cx) + (y - cy) * (y - cy))
-    row[start + 0] = min(np.sqrt(b0) - radius, smax)
-    row[start + 1] = min(np.sqrt(b1) - radius, smax)
-    row[start + 2] = min(np.sqrt(b2) - radius, smax)
-    row[start + 3] = min(np.sqrt(b3) - radius, smax)
-    row[start + 4] = min(np.sqrt(b4) - radius, smax)
-    row[start + 5] = min(np.sqrt(b5) - radius, smax)
-    row[start + 6] = min(np.sqrt(b6) - radius, smax)
-    row[start + 7] = min(np.sqrt(b7) - radius, smax)
-    row[start + 8] = min(np.sqrt(b8) - radius, smax)
+    _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8)
 
 
 @njit(cache=True)
 def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, d2row, rng, fp, ip,
-                  obs, rew, terms, nb_idx, nb_d2, with_reward, obst):
+                  obs, rew, terms, nb_idx, nb_d2, with_reward, obst, obst_index):
     """Observation rows (and, if ``with_reward``, reward terms) of every drone of swarm ``e``.
 
     Neighbours: the K nearest other drones by centre distance, ties broken by the lower index: the
@@ -608,7 +648,7 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, pro
                     row[off + q] = 0.0
                 row[mask_start + k] = 0.0
         if use_obst:
-            obstacle_field(e, xi, yi, obst, fp, ip, row, field_start)
+            obstacle_field(e, xi, yi, obst, obst_index, fp, ip, row, field_start)
         else:
             for q in range(field_start, ip[I_OBS_DIM]):
                 row[q] = 0.0  # an obstacle layout with obstacles switched off (kernel tests) reads zeros
@@ -674,16 +714,17 @@ def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_con
     jumped = np.zeros(step_count.shape[0], np.uint8)
     agent_acc = np.zeros((pos.shape[0], NUM_AGENT_ACC), np.float64)
     obst = np.zeros((step_count.shape[0], 1, 1), np.uint8)
+    obst_index = np.zeros((step_count.shape[0], 1, 1, 1), np.uint8)
     obst_contact = np.zeros(pos.shape[0], np.uint8)
     return step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
                                     step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc,
-                                    obst, obst_contact)
+                                    obst, obst_index, obst_contact)
 
 
 @njit(cache=True)
 def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
                              step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc, obst,
-                             obst_contact):
+                             obst_index, obst_contact):
     """One control step of all E swarms (see the module docstring). Returns the number of swarms done.
 
     ``done[e]`` = the episode of swarm e reached its length (truncation). ``diverged[e]`` = a drone's
@@ -691,7 +732,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     rows are 0, and it is reported done; the caller decides (raise or reset).
     Episode metrics go to ``acc [E, NUM_ACC]`` and ``agent_acc [M, NUM_AGENT_ACC]``; ``jumped[e] = 1``
     (set by the scenario: the goals jumped before this step) restarts the swarm's success windows and is
-    cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_contact`` [M] the drones touching one.
+    cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_index`` their lookup index
+    (``quad_env.obstacles.index_obstacles``), ``obst_contact`` [M] the drones touching one.
     """
     n_agents = ip[I_N]
     num_envs = step_count.shape[0]
@@ -744,7 +786,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
         n_new = pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, px, py, pz, row)
         acc[e, ACC_COLLISIONS] += n_new
         mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, row,
-                                  rng, fp, ip, obs, rew, terms, nb_idx, nb_d2, True, obst)
+                                  rng, fp, ip, obs, rew, terms, nb_idx, nb_d2, True, obst, obst_index)
         # ---- episode statistics
         for a in range(n_agents):
             i = base + a
@@ -770,7 +812,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
 
 
 @njit(cache=True)
-def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst):
+def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst, obst_index):
     """Observation rows of the swarms with ``selected[e]`` (after a reset or a state change)."""
     n_agents = ip[I_N]
     k_slots = ip[I_K]
@@ -786,7 +828,7 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst)
         if selected[e]:
             gather_positions(e, pos, n_agents, px, py, pz)
             observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, dummy_vec, px, py, pz,
-                          row, rng, fp, ip, obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False, obst)
+                          row, rng, fp, ip, obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False, obst, obst_index)
 
 
 @njit(cache=True)

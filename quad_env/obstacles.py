@@ -78,3 +78,70 @@ def obstacle_centers(grid: np.ndarray, cfg: EnvConfig) -> np.ndarray:
     ix, iy = np.nonzero(grid)
     x0, cell = grid_origin(cfg), cfg.obstacle_cell_size
     return np.stack([x0 + (ix + 0.5) * cell, x0 + (iy + 0.5) * cell], axis=1).astype(np.float64)
+
+
+# ---------------------------------------------------------------- candidate index for the obstacle field
+INDEX_SLOTS = 7  # candidate cylinders kept per lookup cell (8 bytes with the count: the index stays in cache)
+
+
+def index_spec(cfg: EnvConfig):
+    """(dtype, bit shift) of the index entries: a candidate cell is stored as (ix << shift) | iy."""
+    return (np.uint8, 4) if cfg.obstacle_grid_cells <= 16 else (np.uint16, 8)
+
+
+def lookup_pad(cfg: EnvConfig) -> int:
+    """Cells added around the obstacle grid so that the lookup grid covers the whole room."""
+    spare = cfg.physics.room_half_width - 0.5 * cfg.obstacle_grid_cells * cfg.obstacle_cell_size
+    return max(0, int(np.ceil(spare / cfg.obstacle_cell_size - 1e-9)))
+
+
+@njit(cache=True, inline="always")
+def _box_distances(lo_x, hi_x, lo_y, hi_y, cx, cy):
+    """(min, max) distance from the point (cx, cy) to the points of the box [lo_x, hi_x] x [lo_y, hi_y]."""
+    nx = max(lo_x - cx, 0.0, cx - hi_x)
+    ny = max(lo_y - cy, 0.0, cy - hi_y)
+    fx = max(abs(lo_x - cx), abs(hi_x - cx))
+    fy = max(abs(lo_y - cy), abs(hi_y - cy))
+    return np.sqrt(nx * nx + ny * ny), np.sqrt(fx * fx + fy * fy)
+
+
+@njit(cache=True)
+def index_obstacles(selected, obst, index, x0, cell, radius, sdf_max, pad, spacing, shift):
+    """For every lookup cell (u, v) of the selected swarms (cells of the obstacle grid's size, ``pad`` more on
+    each side), the cylinders that can be the nearest one to a point of the box B = cell grown by ``spacing``
+    (where the obstacle field samples lie for a drone in the cell): ``index[e, u, v, 0]`` = their number
+    (more than the slots: slots + 1, scan instead), ``index[e, u, v, 1:]`` = their cells (ix << shift) | iy
+    (``index_spec``).
+
+    With U = min over cylinders of the largest distance to B, a cylinder is kept if its smallest distance to
+    B is <= U (it may be nearest for some point of B) and its surface may come closer than ``sdf_max``."""
+    n = obst.shape[1]
+    slots = index.shape[3] - 1
+    lookup = index.shape[1]
+    xl = x0 - pad * cell
+    for e in range(selected.shape[0]):
+        if not selected[e]:
+            continue
+        for u in range(lookup):
+            lo_x, hi_x = xl + u * cell - spacing, xl + (u + 1) * cell + spacing
+            for v in range(lookup):
+                lo_y, hi_y = xl + v * cell - spacing, xl + (v + 1) * cell + spacing
+                upper = np.inf
+                for ix in range(n):
+                    for iy in range(n):
+                        if obst[e, ix, iy] != 0:
+                            near, far = _box_distances(lo_x, hi_x, lo_y, hi_y, x0 + (ix + 0.5) * cell,
+                                                       x0 + (iy + 0.5) * cell)
+                            upper = min(upper, far)
+                count = 0
+                for ix in range(n):
+                    for iy in range(n):
+                        if obst[e, ix, iy] == 0:
+                            continue
+                        near, far = _box_distances(lo_x, hi_x, lo_y, hi_y, x0 + (ix + 0.5) * cell,
+                                                   x0 + (iy + 0.5) * cell)
+                        if near <= upper and near - radius < sdf_max:
+                            if count < slots:
+                                index[e, u, v, 1 + count] = (ix << shift) | iy
+                            count += 1
+                index[e, u, v, 0] = min(count, slots + 1)

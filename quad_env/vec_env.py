@@ -42,8 +42,11 @@ from quad_env.kernels import (
     ACC_TERMS, AG_COLL_GRACE, AG_OBST_GRACE, AG_REACHED, NUM_ACC, NUM_AGENT_ACC, all_finite, observe_kernel,
     refresh_contacts_kernel, spawn_kernel, step_with_metrics_kernel,
 )
-from quad_env.obstacles import OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin
-from quad_env.params import I_EP_STEPS, REWARD_TERMS, pack_params
+from quad_env.obstacles import (
+    INDEX_SLOTS, OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin, index_obstacles, index_spec,
+    lookup_pad,
+)
+from quad_env.params import I_EP_STEPS, REWARD_TERMS, SDF_SPACING, pack_params
 from quad_env.replay import CollisionReplay
 from quad_env.rng import seed_streams
 from quad_env.scenarios import SPAWN_HALF, SPAWN_MIN_SEP, SPAWN_MIN_Z, make_scenario
@@ -111,6 +114,8 @@ class VecQuadEnv:
         self._agent_acc = np.zeros((M, NUM_AGENT_ACC), np.float64)
         G = cfg.obstacle_grid_cells if cfg.obstacles else 1
         self._obst = np.zeros((E, G, G), np.uint8)  # 1 = a cylinder in cell (ix, iy) (quad_env.obstacles)
+        L = G + 2 * lookup_pad(cfg) if cfg.obstacles else 1
+        self._obst_index = np.zeros((E, L, L, INDEX_SLOTS + 1 if cfg.obstacles else 1), index_spec(cfg)[0])
         self._obst_contact = np.zeros(M, np.uint8)
         self._rng = seed_streams(seed, E)
         self._fp, self._ip = pack_params(cfg, D, noise=True)
@@ -180,7 +185,7 @@ class VecQuadEnv:
                                           self._goal, self._contact, self._room_contact, self._rng,
                                           self._step_count, self._fp, self._ip, self._obs, self._rew, self._terms,
                                           self._done, self._diverged, self._acc, self.scenario.jumped,
-                                          self._agent_acc, self._obst, self._obst_contact)
+                                          self._agent_acc, self._obst, self._obst_index, self._obst_contact)
         if self._replay is not None:
             self._replay.after_step(self._step_count, self._acc[:, ACC_COLL_GRACE] + self._acc[:, ACC_OBST_GRACE],
                                     self._obst, self._episode_name, self._state_arrays())
@@ -218,7 +223,7 @@ class VecQuadEnv:
         """Rebuild the observation of the current state (sensor noise as configured) and return the
         obs buffer float32 [E*N, D]."""
         observe_kernel(self._everyone, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng,
-                       self._fp, self._ip, self._obs, self._obst)
+                       self._fp, self._ip, self._obs, self._obst, self._obst_index)
         return self._obs
 
     # ------------------------------------------------------------------ obstacles
@@ -237,6 +242,7 @@ class VecQuadEnv:
         if grid.shape != self._obst.shape:
             raise ValueError(f"set_obstacles: grid must have shape {self._obst.shape}, got {grid.shape}")
         self._obst[...] = grid != 0
+        self._index_obstacles(self._everyone)
         self._obst_contact[:] = 0
         self.observe()
 
@@ -300,7 +306,8 @@ class VecQuadEnv:
         step_with_metrics_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
                                  self._goal, self._contact, self._room_contact, self._rng, self._step_count, fp,
                                  ip, self._obs, self._rew, self._terms, done, diverged, self._acc,
-                                 self.scenario.jumped, self._agent_acc, self._obst, self._obst_contact)
+                                 self.scenario.jumped, self._agent_acc, self._obst, self._obst_index,
+                                 self._obst_contact)
         if diverged.any():
             raise FloatingPointError(f"simulate: non-finite state in swarms {np.flatnonzero(diverged).tolist()}")
         return self.get_state()
@@ -317,6 +324,13 @@ class VecQuadEnv:
             bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
             raise ValueError(f"actions contain NaN or inf (rows {bad[:10].tolist()}{'...' if bad.size > 10 else ''})")
         return a
+
+    def _index_obstacles(self, selected: np.ndarray) -> None:
+        """Rebuild the obstacle field's lookup index of the selected swarms (after their layout changed)."""
+        cfg = self.cfg
+        index_obstacles(selected, self._obst, self._obst_index, grid_origin(cfg), cfg.obstacle_cell_size,
+                        0.5 * cfg.obstacle_diameter, cfg.obstacle_sdf_max, lookup_pad(cfg), SDF_SPACING + 1e-6,
+                        index_spec(cfg)[1])
 
     def _state_arrays(self):
         return self._pos, self._vel, self._rot, self._omega, self._motor, self._ou, self._goal
@@ -355,6 +369,8 @@ class VecQuadEnv:
                 self._replayed_name[e] = name
                 self._room_contact[e * self.num_agents:(e + 1) * self.num_agents] = 0
             self.scenario.set_active(replayed, False)  # the stored goals stay put
+        if cfg.obstacles:
+            self._index_obstacles(selected)
         self._obst_contact[np.repeat(selected, self.num_agents)] = 0
         refresh_contacts_kernel(selected, self._pos, self._contact, self._fp, self._ip)
         self._step_count[selected] = 0
@@ -367,7 +383,7 @@ class VecQuadEnv:
             self._replay.start_episodes(selected, replayed)
             self._replay.snapshot(selected, self._step_count, *self._state_arrays())
         observe_kernel(selected, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
-                       self._ip, self._obs, self._obst)
+                       self._ip, self._obs, self._obst, self._obst_index)
 
     def _finish_episodes(self) -> None:
         """Record stats, save final observations and restart the swarms that finished."""

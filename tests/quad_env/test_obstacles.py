@@ -6,8 +6,10 @@ import pytest
 
 from quad_env import EnvConfig, PhysicsConfig, RewardConfig, VecQuadEnv, make_scenario
 from quad_env.kernels import NUM_ACC, NUM_AGENT_ACC, step_with_metrics_kernel
-from quad_env.obstacles import OBSTACLE_CLEARANCE, draw_obstacles, obstacle_centers
-from quad_env.reference import reference_obstacle_field, reference_step_obstacles
+from quad_env.obstacles import (
+    INDEX_SLOTS, OBSTACLE_CLEARANCE, draw_obstacles, index_obstacles, lookup_pad, obstacle_centers,
+)
+from quad_env.reference import cylinder_axes, reference_obstacle_field, reference_step_obstacles
 from quad_env.rng import seed_streams
 
 RADIUS = 0.3  # default diameter 0.6 m
@@ -20,6 +22,16 @@ def one_cylinder(E=1, ix=4, iy=4, G=8):
     grid = np.zeros((E, G, G), np.uint8)
     grid[:, ix, iy] = 1
     return grid
+
+
+def obstacle_index(grid, cfg):
+    """The obstacle field's lookup index of the layouts ``grid`` [E, G, G]."""
+    E = grid.shape[0]
+    L = cfg.obstacle_grid_cells + 2 * lookup_pad(cfg)
+    index = np.zeros((E, L, L, INDEX_SLOTS + 1), np.uint8)
+    index_obstacles(np.ones(E, bool), grid, index, -4.0, 1.0, RADIUS, cfg.obstacle_sdf_max, lookup_pad(cfg), 0.1 + 1e-6,
+                    4)
+    return index
 
 
 def axis_distance(pos, axis=(0.5, 0.5)):
@@ -138,7 +150,7 @@ def test_kernel_matches_the_numpy_reference_with_obstacles(quiet_cfg, steps_done
                                  s["goal"], kcontact, np.zeros(M, np.uint8), env._rng.copy(),
                                  np.full(E, steps_done, np.int64), env._fp_quiet, env._ip_quiet, obs, rew, terms,
                                  np.zeros(E, bool), np.zeros(E, bool), np.zeros((E, NUM_ACC)), np.zeros(E, np.uint8),
-                                 np.zeros((M, NUM_AGENT_ACC)), grid, kobst)
+                                 np.zeros((M, NUM_AGENT_ACC)), grid, obstacle_index(grid, cfg), kobst)
         rs, robs, rrew, rterms, rcontact, robst = reference_step_obstacles(
             state, actions, cfg, np.full(E, steps_done), contact, grid, prev_contact)
         for name in ("pos", "vel", "rot", "omega", "motor"):
@@ -184,24 +196,35 @@ def test_obstacle_field_matches_hand_computed_distances(cyl_env):
     np.testing.assert_allclose(sdf_row(env, [-1.0, 0.5])[4], 0.5 - 0.3, atol=1e-6)
 
 
-@pytest.mark.parametrize("density,sdf_max", [(0.05, 8.0), (0.2, 2.0), (0.6, 0.5), (0.0, 2.0)])
-def test_obstacle_field_equals_a_brute_force_reference_everywhere(quiet_cfg, density, sdf_max):
-    """The kernel scans rings of cells around the drone and stops early; the reference takes every cylinder."""
+FINE_GRID = dict(obstacle_grid_cells=18, obstacle_cell_size=0.5, obstacle_diameter=0.3)  # > 16 cells: uint16 index
+
+
+@pytest.mark.parametrize("density,sdf_max,grid_kw", [(0.05, 8.0, {}), (0.2, 2.0, {}), (0.6, 0.5, {}), (0.0, 2.0, {}),
+                                                     (0.2, 2.0, FINE_GRID)])
+def test_obstacle_field_equals_a_brute_force_reference_everywhere(quiet_cfg, density, sdf_max, grid_kw):
+    """The kernel reads a per-cell candidate index (or scans rings of cells and stops early, where a cell has
+    too many candidates); the reference takes every cylinder."""
     E, N = 3, 60
-    cfg = quiet_cfg(num_agents=N, num_neighbors=0, obstacles=True, obstacle_sdf_max=sdf_max)
+    cfg = quiet_cfg(num_agents=N, num_neighbors=0, obstacles=True, obstacle_sdf_max=sdf_max, **grid_kw)
     env = VecQuadEnv(cfg, num_envs=E, seed=0)
     rng = np.random.default_rng(int(density * 100))
-    grid = (rng.uniform(size=(E, 8, 8)) < density).astype(np.uint8)
+    G = cfg.obstacle_grid_cells
+    grid = (rng.uniform(size=(E, G, G)) < density).astype(np.uint8)
     env.set_obstacles(grid)
-    for trial in range(3):
-        pos = np.column_stack([rng.uniform(-5, 5, (E * N, 2)), rng.uniform(0.5, 3, E * N)])
-        env.set_state(pos=pos)
-        field = env.layout.split(env.observe())["obstacle.obstacle_sdf"]
-        for e in range(E):
-            rows = slice(e * N, (e + 1) * N)
-            expected = reference_obstacle_field(pos[rows, :2], obstacle_centers(grid[e], cfg), cfg)
-            np.testing.assert_allclose(field[rows], expected, rtol=0, atol=1e-6)  # (float32 observation)
-    assert density == 0.0 or (field < sdf_max).any()
+    counts = env._obst_index[..., 0].copy()
+    assert density == 0.0 or (counts > 0).any()
+    for path in ("index", "ring scan"):
+        if path == "ring scan":
+            env._obst_index[..., 0] = INDEX_SLOTS + 1  # every lookup cell "overflows"
+        for trial in range(3):
+            pos = np.column_stack([rng.uniform(-5, 5, (E * N, 2)), rng.uniform(0.5, 3, E * N)])
+            env.set_state(pos=pos)
+            field = env.layout.split(env.observe())["obstacle.obstacle_sdf"]
+            for e in range(E):
+                rows = slice(e * N, (e + 1) * N)
+                expected = reference_obstacle_field(pos[rows, :2], cylinder_axes(grid[e], cfg), cfg)
+                np.testing.assert_allclose(field[rows], expected, rtol=0, atol=1e-6, err_msg=path)
+        assert density == 0.0 or (field < sdf_max).any()
 
 
 def test_obstacle_field_clip_follows_the_config(hover_env):
