@@ -114,7 +114,7 @@ def _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, inv_cell, contact_r
     return cx + contact_r * nx, cy + contact_r * ny, vx, vy, 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, obst):
     """``substeps`` physics steps of drone ``i`` under ``action[i]``; returns what it touched during them
     (bit flags TOUCHED_ROOM, TOUCHED_OBSTACLE).
@@ -741,7 +741,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     nb_idx = np.zeros(max(k_slots, 1), np.int64)
     nb_d2 = np.zeros(max(k_slots, 1), np.float64)
     new_coll = np.zeros(n_agents, np.float64)
-    new_obst = np.zeros(n_agents, np.float64)
+    new_obst = np.zeros(n_agents, np.float64)  # (stays 0 without obstacles)
+    use_obst = ip[I_OBSTACLES] != 0
     prox = np.zeros(n_agents, np.float64)
     px, py, pz = np.zeros(n_agents), np.zeros(n_agents), np.zeros(n_agents)
     row = np.zeros(n_agents)
@@ -761,13 +762,14 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
                 if after_grace:
                     acc[e, ACC_ROOM_GRACE] += 1.0
             room_contact[i] = room
-            hit = 1 if touched & TOUCHED_OBSTACLE else 0
-            new_obst[a] = 1.0 if hit > obst_contact[i] else 0.0  # a new contact: not touching at the last step
-            if new_obst[a] != 0.0:
-                acc[e, ACC_OBST] += 1.0
-                if after_grace:
-                    acc[e, ACC_OBST_GRACE] += 1.0
-            obst_contact[i] = hit
+            if use_obst:
+                hit = 1 if touched & TOUCHED_OBSTACLE else 0
+                new_obst[a] = 1.0 if hit > obst_contact[i] else 0.0  # new: not touching at the last step
+                if new_obst[a] != 0.0:
+                    acc[e, ACC_OBST] += 1.0
+                    if after_grace:
+                        acc[e, ACC_OBST_GRACE] += 1.0
+                obst_contact[i] = hit
             if reortho:
                 reorthonormalise(i, rot)
             if not _is_finite_drone(i, pos, vel, rot, omega, motor):
