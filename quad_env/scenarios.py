@@ -14,8 +14,9 @@ A scenario is a small class registered by name. The environment calls, with arra
   Continuous goal motion (pursuit curves, breathing formations) is not a jump.
 
 Only the swarms with ``active[e]`` are updated (``mix`` runs several scenarios side by side, each on the
-swarms that drew it; a replayed episode keeps its goals: ``set_active(selected, False)``). All work on whole batches through numba kernels, never per drone in Python. ``SCENARIOS`` lists the
-registered names; ``make_scenario`` turns a name into an instance (unknown names list the valid ones).
+swarms that drew it; a replayed episode keeps its goals: ``set_active(selected, False)``). All work on
+whole batches through numba kernels, never per drone in Python. ``SCENARIOS`` lists the registered names;
+``make_scenario`` turns a name into an instance (unknown names list the valid ones).
 """
 from __future__ import annotations
 

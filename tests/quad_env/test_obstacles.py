@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from quad_env import EnvConfig, PhysicsConfig, RewardConfig, VecQuadEnv, make_scenario
+from quad_env import EnvConfig, RewardConfig, VecQuadEnv, make_scenario
 from quad_env.kernels import NUM_ACC, NUM_AGENT_ACC, step_with_metrics_kernel
 from quad_env.obstacles import (
     INDEX_SLOTS, OBSTACLE_CLEARANCE, draw_obstacles, index_obstacles, lookup_pad, obstacle_centers,
