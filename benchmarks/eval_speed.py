@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from benchmarks.common import ROOT, append_results, commit, load_average, machine
-from quad_env import ObsLayout, VecQuadEnv
+from quad_env import VecQuadEnv
 from swarm_appo.config import load_config
 from swarm_appo.evaluate import fly_episodes, model_policy
 from swarm_appo.model import model_factory
@@ -38,7 +38,7 @@ WARMUP_STEPS = 3
 def build(model_name: str):
     cfg = load_config(MODELS[model_name])
     torch.manual_seed(0)
-    model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)()
+    model = model_factory(cfg.env.obs_layout(), cfg.model)()
     return cfg, model
 
 

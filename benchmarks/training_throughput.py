@@ -26,7 +26,6 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from benchmarks.common import ROOT, append_results, commit, load_average, machine, sgemm_rate
 from encoders.testing import random_obs
-from quad_env import ObsLayout
 from swarm_appo.config import load_config
 from swarm_appo.model import model_factory
 
@@ -35,7 +34,7 @@ DEFAULT_ENCODERS = ("deepsets", "kattention", "se3_kattention", "se3_graphormer"
 
 def flops_per_agent_step(cfg, batch: int = 512) -> dict:
     """Counted matmul FLOPs per agent step: inference (actor forward) and training per epoch."""
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     model = model_factory(layout, cfg.model)()
     obs = torch.as_tensor(random_obs(layout, batch, np.random.default_rng(0)), dtype=torch.float32)
     with FlopCounterMode(display=False) as fc:

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Optional, Tuple
 
+from quad_env.obs_layout import ObsLayout
+
 SIM_DTYPES = ("float32", "float64")
 NAN_POLICIES = ("raise", "reset")
 
@@ -19,7 +21,7 @@ class RewardConfig:
     pos: float = 0.5
     """c1: weight of -||x_i - x_i^d|| (times dt)."""
     collision: float = 5.0
-    """c2: penalty per *new* drone-drone (or drone-obstacle) contact (not times dt)."""
+    """c2: penalty per *new* drone-drone contact (not times dt); drone-obstacle contacts: ``obstacle_collision``."""
     proximity: float = 5.0
     """c3: weight of -sum_j [1 - ||x_i - x_j|| / d_p]_+ (times dt)."""
     proximity_dist: float = 0.184
@@ -38,6 +40,8 @@ class RewardConfig:
     crash: float = 0.0
     """Shaping, not in the paper (0 = the paper's reward): penalty per new floor contact (not times dt);
     the cost of a crash when ``env.respawn_on_floor`` puts the drone straight back in the air."""
+    obstacle_collision: float = 5.0
+    """Penalty per *new* drone-obstacle contact (not times dt); it enters the "collision" reward term."""
 
 
 @dataclass
@@ -160,6 +164,28 @@ class EnvConfig:
     """Floating type of the simulator state: "float64" (default: as fast as float32 on x86 here, since the
     kernels compute in float64 anyway) or "float32" (half the state memory). Observations and rewards are
     float32 either way."""
+    obstacles: bool = False
+    """Vertical cylinders from floor to ceiling, drawn anew every episode: drones bounce off them (like off a
+    wall), each new contact costs ``reward.obstacle_collision`` and counts as a collision, and every
+    observation gains the 9-entry obstacle field (``ObsLayout(obstacle_obs=True)``, see ``obs_layout()``).
+    The scenarios o_random and o_static_same_goal need it."""
+    obstacle_density: float = 0.2
+    """Probability that a cell of the obstacle grid holds a cylinder (each cell independently, per episode)."""
+    obstacle_diameter: float = 0.6
+    """Cylinder diameter, m. A drone must fit between two neighbouring cylinders:
+    obstacle_diameter + physics.collision_dist < obstacle_cell_size."""
+    obstacle_grid_cells: int = 8
+    """Cells per side of the square obstacle grid, centred in the room (8 x 8 cells of 1 m: an 8 x 8 m area)."""
+    obstacle_cell_size: float = 1.0
+    """Side of a grid cell, m; an occupied cell has a cylinder on its centre."""
+    obstacle_sdf_max: float = 2.0
+    """The obstacle field (signed distances to the nearest cylinder surface) is clipped to at most this, m."""
+    replay_prob: float = 0.0
+    """Collision replay (QuadSwarm): probability that an automatic reset restarts a swarm from a stored state
+    1.5 s before a past collision instead of a fresh spawn. 0 = off. Explicit ``reset()`` calls and envs with
+    ``auto_reset=False`` (evaluation) never replay."""
+    replay_buffer_size: int = 64
+    """Stored pre-collision swarm states per VecQuadEnv (oldest overwritten first)."""
     nan_policy: str = "raise"
     """What a non-finite drone state does: "raise" (FloatingPointError naming the swarm) or "reset"
     (the swarm is reset, its rows are truncated, a RuntimeWarning is issued and the episode's stats carry
@@ -180,6 +206,10 @@ class EnvConfig:
     @property
     def episode_steps(self) -> int:
         return int(round(self.episode_duration / self.control_dt))
+
+    def obs_layout(self) -> ObsLayout:
+        """The observation layout of this config (the obstacle field only with ``obstacles``)."""
+        return ObsLayout(self.num_neighbors, self.neighbor_obs, obstacle_obs=self.obstacles)
 
     def validate(self) -> "EnvConfig":
         """Raise ValueError naming the offending key if a value is out of range."""
@@ -209,13 +239,44 @@ class EnvConfig:
             raise ValueError(f"env.respawn_on_floor must be true or false, got {self.respawn_on_floor!r}")
         if not isinstance(self.scenario, str):
             raise ValueError(f"env.scenario must be a scenario name (str), got {self.scenario!r}")
-        for name in ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash"):
+        self._validate_obstacles_and_replay()
+        if self.respawn_on_floor and self.obstacles:
+            raise ValueError("env.respawn_on_floor is not supported with env.obstacles=true yet (a respawn point "
+                             "could lie inside a cylinder): switch one of them off")
+        for name in ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash",
+                     "obstacle_collision"):
             if not getattr(self.reward, name) >= 0:
                 raise ValueError(f"env.reward.{name} must be >= 0, got {getattr(self.reward, name)!r}")
         if not self.reward.proximity_dist > 0:
             raise ValueError(f"env.reward.proximity_dist must be > 0, got {self.reward.proximity_dist!r}")
         self.physics.validate()
         return self
+
+    def _validate_obstacles_and_replay(self) -> None:
+        if not isinstance(self.obstacles, bool):
+            raise ValueError(f"env.obstacles must be True or False, got {self.obstacles!r}")
+        if not 0 <= self.obstacle_density <= 1:
+            raise ValueError(f"env.obstacle_density must be in [0, 1], got {self.obstacle_density!r}")
+        if not isinstance(self.obstacle_grid_cells, int) or not 1 <= self.obstacle_grid_cells <= 256:
+            raise ValueError(f"env.obstacle_grid_cells must be an int in [1, 256], got {self.obstacle_grid_cells!r}")
+        if not self.obstacle_cell_size > 0:
+            raise ValueError(f"env.obstacle_cell_size must be > 0, got {self.obstacle_cell_size!r}")
+        if not self.obstacle_diameter > 0:
+            raise ValueError(f"env.obstacle_diameter must be > 0, got {self.obstacle_diameter!r}")
+        if not self.obstacle_diameter + self.physics.collision_dist < self.obstacle_cell_size:
+            raise ValueError(f"env.obstacle_diameter must be < env.obstacle_cell_size - env.physics.collision_dist "
+                             f"(a drone fits between two cylinders), got {self.obstacle_diameter!r} with cells of "
+                             f"{self.obstacle_cell_size!r} m")
+        if self.obstacle_grid_cells * self.obstacle_cell_size > 2 * self.physics.room_half_width:
+            raise ValueError(f"env.obstacle_grid_cells * env.obstacle_cell_size must fit in the room "
+                             f"(<= {2 * self.physics.room_half_width} m), got "
+                             f"{self.obstacle_grid_cells} x {self.obstacle_cell_size} m")
+        if not self.obstacle_sdf_max > 0:
+            raise ValueError(f"env.obstacle_sdf_max must be > 0, got {self.obstacle_sdf_max!r}")
+        if not 0 <= self.replay_prob <= 1:
+            raise ValueError(f"env.replay_prob must be in [0, 1], got {self.replay_prob!r}")
+        if not isinstance(self.replay_buffer_size, int) or self.replay_buffer_size < 1:
+            raise ValueError(f"env.replay_buffer_size must be an int >= 1, got {self.replay_buffer_size!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -40,9 +40,12 @@ def fly(cfg: EnvConfig, steps: int, seed: int, policy: str):
 
 
 def plot(track: np.ndarray, goals: np.ndarray, path: str, title: str, goal_track: Optional[np.ndarray] = None,
-         collisions: Optional[np.ndarray] = None) -> None:
+         collisions: Optional[np.ndarray] = None, cylinders: Optional[np.ndarray] = None,
+         cylinder_radius: float = 0.3, obstacle_hits: Optional[np.ndarray] = None) -> None:
     """3-D trajectory PNG. track [T+1, N, 3]; goals [N, 3] (at the end); goal_track [T+1, N, 3] draws the
-    goals' paths (moving goals); collisions [C, 3] marks where drones collided."""
+    goals' paths (moving goals); collisions [C, 3] marks where drones collided; cylinders [K, 2] (axes x, y)
+    draws obstacles of ``cylinder_radius`` from the floor to just above the highest point drawn;
+    obstacle_hits [H, 3] marks where drones hit them."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -57,11 +60,21 @@ def plot(track: np.ndarray, goals: np.ndarray, path: str, title: str, goal_track
         for a in range(goal_track.shape[1]):
             ax.plot(goal_track[:, a, 0], goal_track[:, a, 1], goal_track[:, a, 2], color="red", lw=0.6, ls="--",
                     alpha=0.5, label="goal paths" if a == 0 else None)
+    if cylinders is not None and len(cylinders):
+        top = max(track[..., 2].max(), goals[:, 2].max()) + 0.5
+        ang, height = np.linspace(0, 2 * np.pi, 24), np.array([0.0, top])
+        for cx, cy in cylinders:
+            ax.plot_surface(cx + cylinder_radius * np.cos(ang)[None], cy + cylinder_radius * np.sin(ang)[None],
+                            np.repeat(height[:, None], len(ang), 1), color="gray", alpha=0.25, linewidth=0)
+        ax.plot([], [], color="gray", lw=6, alpha=0.4, label=f"obstacles ({len(cylinders)})")
     ax.scatter(goals[:, 0], goals[:, 1], goals[:, 2], color="red", marker="*", s=60, label="goals")
     ax.scatter([], [], color="gray", marker="o", s=12, label="start")
     if collisions is not None and len(collisions):
         ax.scatter(collisions[:, 0], collisions[:, 1], collisions[:, 2], color="black", marker="x", s=50,
                    label=f"collisions ({len(collisions)})")
+    if obstacle_hits is not None and len(obstacle_hits):
+        ax.scatter(obstacle_hits[:, 0], obstacle_hits[:, 1], obstacle_hits[:, 2], color="darkorange", marker="X",
+                   s=50, label=f"obstacle hits ({len(obstacle_hits)})")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")

@@ -13,10 +13,13 @@ specialise on the dtype)::
 
 Per swarm: ``contact [E, N, N] uint8`` (pair a < b touching at the last step), ``room_contact [M]``,
 ``rng [E] uint64`` (SplitMix64 streams, see ``quad_env.rng``), ``step_count [E]`` and the episode
-accumulators.
+accumulators. Obstacles: ``obst [E, G, G] uint8`` (1 = a cylinder on the centre of grid cell (ix, iy),
+cell ix spanning x in [x0 + ix * cell, x0 + (ix + 1) * cell)) and ``obst_contact [M] uint8`` (the drone
+touched a cylinder at the last step). Only the cells near a drone are looked at.
 
 One control step of one swarm (``step_kernel``):
-  1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls);
+  1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls,
+     cylinders);
   2. every 50th step (config): re-orthonormalise the rotations;
   3. one pass over pairs a < b: new contacts, collision response, proximity sums, downwash impulses;
   4. one pass over drones: K nearest neighbours (partial selection), observation row and reward terms.
@@ -34,7 +37,9 @@ from quad_env.params import (
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
     I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
-    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS,
+    I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
+    F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
+    SDF_SPACING,
 )
 
 from quad_env.rng import normal_from, normal_pair, uniform
@@ -53,8 +58,10 @@ ACC_DIST_TAIL3 = 16  # sum over the last-3-s steps of the mean distance to goal
 ACC_TAIL3_STEPS = 17
 ACC_COLL_GRACE = 18  # new drone-drone contacts (pairs) after the grace period
 ACC_ROOM_GRACE = 19  # new room contacts (drones) after the grace period
-ACC_RESPAWNS = 20  # drones respawned after touching the floor (env.respawn_on_floor)
-NUM_ACC = 21
+ACC_OBST = 20  # new drone-obstacle contacts (drones)
+ACC_OBST_GRACE = 21  # new drone-obstacle contacts (drones) after the grace period
+ACC_RESPAWNS = 22  # drones respawned after touching the floor (env.respawn_on_floor)
+NUM_ACC = 23
 
 # Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success and IColR metrics.
 SUCCESS_WINDOW = 5  # a drone has reached its goal when its mean distance over this many steps ...
@@ -63,7 +70,12 @@ AG_RING = 0  # SUCCESS_WINDOW columns: the latest distances to goal (ring buffer
 AG_SINCE_JUMP = 5  # steps recorded since the last goal jump (or the episode start)
 AG_REACHED = 6  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
 AG_COLL_GRACE = 7  # new drone-drone contacts of this drone after the grace period
-NUM_AGENT_ACC = 8
+AG_OBST_GRACE = 8  # new drone-obstacle contacts of this drone after the grace period
+NUM_AGENT_ACC = 9
+
+# advance_drone's return value: what the drone touched during the control step (bit flags).
+TOUCHED_ROOM = 1
+TOUCHED_OBSTACLE = 2
 
 
 # ====================================================================== single drone
@@ -78,15 +90,43 @@ def _bounce(p, v, lo, hi, restitution):
     return p, v, 0
 
 
-@njit(cache=True)
-def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
-    """``substeps`` physics steps of drone ``i`` under ``action[i]``; returns 1 if it touched the room.
+@njit(cache=True, inline="always")
+def _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, inv_cell, contact_r, n_cells, restitution):
+    """A drone whose centre is closer than ``contact_r`` to a cylinder axis is put back on the contact circle
+    along the radius, and its inward radial speed is reversed and damped (as at a wall). Config validation
+    keeps contact_r below half a cell, so only the cylinder of the drone's own cell can be touched: one
+    lookup. Returns (px, py, vx, vy, 1 if it touched)."""
+    fx, fy = (px - x0) * inv_cell, (py - x0) * inv_cell
+    if not (0.0 <= fx < n_cells and 0.0 <= fy < n_cells):
+        return px, py, vx, vy, 0  # outside the grid (or not finite)
+    ix, iy = int(fx), int(fy)
+    if obst[e, ix, iy] == 0:
+        return px, py, vx, vy, 0
+    cx, cy = x0 + (ix + 0.5) * cell, x0 + (iy + 0.5) * cell
+    dx, dy = px - cx, py - cy
+    d2 = dx * dx + dy * dy
+    if d2 >= contact_r * contact_r:
+        return px, py, vx, vy, 0
+    d = np.sqrt(d2)
+    nx, ny = (dx / d, dy / d) if d > 0.0 else (1.0, 0.0)
+    vn = vx * nx + vy * ny
+    if vn < 0.0:  # moving into the cylinder
+        vx -= (1.0 + restitution) * vn * nx
+        vy -= (1.0 + restitution) * vn * ny
+    return cx + contact_r * nx, cy + contact_r * ny, vx, vy, 1
+
+
+@njit(cache=True, inline="always")
+def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, obst):
+    """``substeps`` physics steps of drone ``i`` under ``action[i]``; returns what it touched during them
+    (bit flags TOUCHED_ROOM, TOUCHED_OBSTACLE).
 
     Per physics step (explicit Euler for position, velocity and body rates, exact rotation update):
       motor speed w += gain (sqrt(cmd) - w);  thrust fraction f = clip(w^2 + cmd * ou, 0, 1)
       I w' = tau - w x I w  (rates clipped to +-omega_max);  R <- R exp(dt [w]_x)  (new rates)
       a = R [0, 0, sum T] / m - g e_z - (drag / m) v;  x += dt v;  v += dt a
-    then floor (land: zero velocity and rates, level the attitude keeping yaw) and walls (bounce).
+    then floor (land: zero velocity and rates, level the attitude keeping yaw), walls (bounce) and
+    cylinders (``obst``, if obstacles are on: bounce off the surface, like a wall).
     """
     dt = fp[F_DT]
     gain = fp[F_MOTOR_GAIN]
@@ -101,6 +141,9 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
     theta, sigma = fp[F_OU_THETA], fp[F_OU_SIGMA]
     floor_z, half, height, wall_rest = fp[F_FLOOR_Z], fp[F_ROOM_HALF], fp[F_ROOM_H], fp[F_WALL_REST]
     noise = ip[I_THRUST_NOISE] != 0
+    use_obst = ip[I_OBSTACLES] != 0
+    x0, cell, contact_r, n_cells = fp[F_OBST_ORIGIN], fp[F_OBST_CELL], fp[F_OBST_CONTACT_R], ip[I_OBST_CELLS]
+    inv_cell = 1.0 / cell
 
     # Commands in [0, 1]; the motors track the rotor speed sqrt(cmd).
     c0 = 0.5 * (min(max(action[i, 0], -1.0), 1.0) + 1.0)
@@ -222,6 +265,10 @@ def advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip):
         touched |= hit
         py, vy, hit = _bounce(py, vy, -half, half, wall_rest)
         touched |= hit
+        if use_obst:
+            px, py, vx, vy, hit = _push_out_of_cylinder(e, px, py, vx, vy, obst, x0, cell, inv_cell, contact_r,
+                                                        n_cells, wall_rest)
+            touched |= TOUCHED_OBSTACLE * hit
 
     rng[e] = stream
     motor[i, 0], motor[i, 1], motor[i, 2], motor[i, 3] = w0, w1, w2, w3
@@ -390,16 +437,115 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
 
 
 # ====================================================================== observation and reward
+@njit(cache=True, inline="always")
+def _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy):
+    """Squared distances of the 9 grid points around (x, y) to their nearest axis, updated with axis (cx, cy)."""
+    dx0, dx1, dx2 = x - h - cx, x - cx, x + h - cx
+    dy0, dy1, dy2 = y - h - cy, y - cy, y + h - cy
+    sx0, sx1, sx2 = dx0 * dx0, dx1 * dx1, dx2 * dx2
+    sy0, sy1, sy2 = dy0 * dy0, dy1 * dy1, dy2 * dy2
+    return (min(b0, sx0 + sy0), min(b1, sx0 + sy1), min(b2, sx0 + sy2),
+            min(b3, sx1 + sy0), min(b4, sx1 + sy1), min(b5, sx1 + sy2),
+            min(b6, sx2 + sy0), min(b7, sx2 + sy1), min(b8, sx2 + sy2))
+
+
+@njit(cache=True, inline="always")
+def _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8):
+    row[start + 0] = min(np.sqrt(b0) - radius, smax)
+    row[start + 1] = min(np.sqrt(b1) - radius, smax)
+    row[start + 2] = min(np.sqrt(b2) - radius, smax)
+    row[start + 3] = min(np.sqrt(b3) - radius, smax)
+    row[start + 4] = min(np.sqrt(b4) - radius, smax)
+    row[start + 5] = min(np.sqrt(b5) - radius, smax)
+    row[start + 6] = min(np.sqrt(b6) - radius, smax)
+    row[start + 7] = min(np.sqrt(b7) - radius, smax)
+    row[start + 8] = min(np.sqrt(b8) - radius, smax)
+
+
+@njit(cache=True, inline="always")
+def obstacle_field(e, x, y, obst, obst_index, fp, ip, row, start):
+    """The obstacle field of a drone at (x, y): ``row[start + 3 * a + b]`` = signed horizontal distance from the
+    point (x + (a - 1) h, y + (b - 1) h), h = SDF_SPACING, to the nearest cylinder surface of swarm ``e``
+    (negative inside), clipped to at most ``obstacle_sdf_max``.
+
+    ``obst_index`` (``quad_env.obstacles.index_obstacles``, rebuilt whenever a layout changes) lists, per
+    cell of a lookup grid over the room, the few cylinders that can be nearest to a sample point of a drone
+    in that cell: one lookup, then 9 squared distances per candidate and 9 square roots. A cell with too many
+    candidates (sparse cylinders, large obstacle_sdf_max) says so and the rings of cells are scanned instead.
+    """
+    cell, radius, smax = fp[F_OBST_CELL], fp[F_OBST_R], fp[F_OBST_SDF_MAX]
+    x0, xl, n_cells, n_lookup = fp[F_OBST_ORIGIN], fp[F_OBST_LOOKUP_ORIGIN], ip[I_OBST_CELLS], ip[I_OBST_LOOKUP]
+    inv_cell = 1.0 / cell
+    fu, fv = (x - xl) * inv_cell, (y - xl) * inv_cell
+    if not (0.0 <= fu <= n_lookup and 0.0 <= fv <= n_lookup):  # outside the room (or not finite)
+        _obstacle_field_scan(e, x, y, obst, fp, ip, row, start)
+        return
+    u, v = min(int(fu), n_lookup - 1), min(int(fv), n_lookup - 1)
+    count = np.int64(obst_index[e, u, v, 0])
+    if count >= obst_index.shape[3]:
+        _obstacle_field_scan(e, x, y, obst, fp, ip, row, start)
+        return
+    h = SDF_SPACING
+    shift = 4 if n_cells <= 16 else 8  # quad_env.obstacles.index_spec
+    mask = (1 << shift) - 1
+    inf = np.inf
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = inf, inf, inf, inf, inf, inf, inf, inf, inf
+    for q in range(count):
+        c = np.int64(obst_index[e, u, v, 1 + q])  # (ix << shift) | iy
+        cx, cy = x0 + ((c >> shift) + 0.5) * cell, x0 + ((c & mask) + 0.5) * cell
+        b0, b1, b2, b3, b4, b5, b6, b7, b8 = _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy)
+    _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8)
+
+
 @njit(cache=True)
-def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py, pz, d2row, rng, fp, ip,
-                  obs, rew, terms, nb_idx, nb_d2, with_reward):
+def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
+    """``obstacle_field`` without the index.
+
+    Rings of cells around the drone's cell (ring k: Chebyshev cell distance k) are scanned outwards, keeping
+    the 9 points' squared distances to their nearest axis. Every axis in ring k or beyond is at least
+    (k - 1/2) cell from the drone and a grid point is at most h sqrt(2) from it, so the scan stops once that
+    bound exceeds the nearest axis found by 2 h sqrt(2), or exceeds obstacle_sdf_max + radius + h sqrt(2)
+    (whatever lies farther is clipped): usually after ring 1 or 2. Only 9 square roots per drone.
+    """
+    x0, cell, radius, smax = fp[F_OBST_ORIGIN], fp[F_OBST_CELL], fp[F_OBST_R], fp[F_OBST_SDF_MAX]
+    n_cells = ip[I_OBST_CELLS]
+    h = SDF_SPACING
+    spread = h * np.sqrt(2.0)  # grid point to drone, at most
+    ci = int(np.floor((x - x0) / cell))  # the drone's cell (may lie outside the grid)
+    cj = int(np.floor((y - x0) / cell))
+    last_ring = max(max(ci, n_cells - 1 - ci), max(cj, n_cells - 1 - cj))  # beyond it: no grid cell
+    inf = np.inf
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = inf, inf, inf, inf, inf, inf, inf, inf, inf
+    nearest2 = inf  # squared distance from the drone to the nearest axis found
+    for k in range(0, last_ring + 1):
+        if k > 0:
+            bound = (k - 0.5) * cell - spread  # lower bound of any grid point's distance to a ring-k axis
+            if bound - radius >= smax or (nearest2 < inf and bound >= np.sqrt(nearest2) + spread):
+                break
+        for i in range(max(ci - k, 0), min(ci + k, n_cells - 1) + 1):
+            edge_row = i == ci - k or i == ci + k
+            step = 1 if edge_row else 2 * k  # inner rows of the ring: only its two side cells
+            for j in range(cj - k, cj + k + 1, max(step, 1)):
+                if j < 0 or j >= n_cells or obst[e, i, j] == 0:
+                    continue
+                cx, cy = x0 + (i + 0.5) * cell, x0 + (j + 0.5) * cell
+                b0, b1, b2, b3, b4, b5, b6, b7, b8 = _nearer(b0, b1, b2, b3, b4, b5, b6, b7, b8, x, y, h, cx, cy)
+                nearest2 = min(nearest2, (x - cx) * (x - cx) + (y - cy) * (y - cy))
+    _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8)
+
+
+@njit(cache=True)
+def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, d2row, rng, fp, ip,
+                  obs, rew, terms, nb_idx, nb_d2, with_reward, obst, obst_index):
     """Observation rows (and, if ``with_reward``, reward terms) of every drone of swarm ``e``.
 
     Neighbours: the K nearest other drones by centre distance, ties broken by the lower index: the
     squared distances to all N drones are computed in one vectorised loop (positions from
     ``gather_positions``), then one scan inserts into a K-slot sorted list (O(N K) worst case, O(N)
     typical), never sorting all N.
-    Slots beyond the real neighbours or the sensing radius are zero with mask 0.
+    Slots beyond the real neighbours or the sensing radius are zero with mask 0. With obstacles on, the
+    obstacle field (``obstacle_field``, no sensor noise) ends the row.
+    ``new_coll``, ``new_obst`` [N]: new drone-drone and drone-obstacle contacts of each drone (rewards).
     Returns the swarm's mean distance to goal.
     """
     n_agents = ip[I_N]
@@ -415,6 +561,9 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
     c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
     c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
     c_floor, c_tilt, floor_z = fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z]
+    c_obst = fp[F_C_OBST]
+    use_obst = ip[I_OBSTACLES] != 0
+    field_start = mask_start + k_slots
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -501,8 +650,11 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
                 for q in range(nb_dim):
                     row[off + q] = 0.0
                 row[mask_start + k] = 0.0
-        for q in range(mask_start + k_slots, ip[I_OBS_DIM]):
-            row[q] = 0.0  # fields of later issues (obstacle field)
+        if use_obst:
+            obstacle_field(e, xi, yi, obst, obst_index, fp, ip, row, field_start)
+        else:
+            for q in range(field_start, ip[I_OBS_DIM]):
+                row[q] = 0.0  # an obstacle layout with obstacles switched off (kernel tests) reads zeros
 
         # ---- reward terms (true state, not the noisy observation)
         if with_reward:
@@ -512,7 +664,7 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
             u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
             u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
             r_pos = -c_pos * dist
-            r_coll = -c_coll * new_coll[a]
+            r_coll = -c_coll * new_coll[a] - c_obst * new_obst[a]
             r_prox = -c_prox * prox[a]
             r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
             r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
@@ -531,11 +683,11 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py,
 
 # ====================================================================== episode metrics
 @njit(cache=True)
-def agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agents):
+def agent_metrics(e, pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents):
     """Per-drone success bookkeeping of swarm ``e`` after a step: the distance to goal enters a ring of the
     last SUCCESS_WINDOW steps; once the ring holds that many steps since the last goal jump and their mean
     is below SUCCESS_RADIUS, the drone has reached its goal. A jump (``jumped[e]``) empties the rings and
-    clears "reached". New drone-drone contacts after the grace period are counted per drone."""
+    clears "reached". New drone-drone and drone-obstacle contacts after the grace period are counted per drone."""
     base = e * n_agents
     if jumped[e] != 0:
         for a in range(n_agents):
@@ -557,22 +709,29 @@ def agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agen
                 agent_acc[i, AG_REACHED] = 1.0
         if after_grace:
             agent_acc[i, AG_COLL_GRACE] += new_coll[a]
+            agent_acc[i, AG_OBST_GRACE] += new_obst[a]
 
 
 # ====================================================================== whole-batch kernels
 @njit(cache=True)
 def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng, step_count,
                 fp, ip, obs, rew, terms, done, diverged, acc):
-    """``step_with_metrics_kernel`` without the per-drone metrics (physics tests, model validation)."""
+    """``step_with_metrics_kernel`` without the per-drone metrics and without obstacles (``ip`` must have them
+    off): physics tests, model validation."""
     jumped = np.zeros(step_count.shape[0], np.uint8)
     agent_acc = np.zeros((pos.shape[0], NUM_AGENT_ACC), np.float64)
+    obst = np.zeros((step_count.shape[0], 1, 1), np.uint8)
+    obst_index = np.zeros((step_count.shape[0], 1, 1, 1), np.uint8)
+    obst_contact = np.zeros(pos.shape[0], np.uint8)
     return step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                                    step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc)
+                                    step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc,
+                                    obst, obst_index, obst_contact)
 
 
 @njit(cache=True)
 def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                             step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc):
+                             step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc, obst,
+                             obst_index, obst_contact):
     """One control step of all E swarms (see the module docstring). Returns the number of swarms done.
 
     ``done[e]`` = the episode of swarm e reached its length (truncation). ``diverged[e]`` = a drone's
@@ -580,7 +739,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     rows are 0, and it is reported done; the caller decides (raise or reset).
     Episode metrics go to ``acc [E, NUM_ACC]`` and ``agent_acc [M, NUM_AGENT_ACC]``; ``jumped[e] = 1``
     (set by the scenario: the goals jumped before this step) restarts the swarm's success windows and is
-    cleared here.
+    cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_index`` their lookup index
+    (``quad_env.obstacles.index_obstacles``), ``obst_contact`` [M] the drones touching one.
     """
     n_agents = ip[I_N]
     num_envs = step_count.shape[0]
@@ -588,6 +748,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     nb_idx = np.zeros(max(k_slots, 1), np.int64)
     nb_d2 = np.zeros(max(k_slots, 1), np.float64)
     new_coll = np.zeros(n_agents, np.float64)
+    new_obst = np.zeros(n_agents, np.float64)  # (stays 0 without obstacles)
+    use_obst = ip[I_OBSTACLES] != 0
     prox = np.zeros(n_agents, np.float64)
     px, py, pz = np.zeros(n_agents), np.zeros(n_agents), np.zeros(n_agents)
     row = np.zeros(n_agents)
@@ -600,12 +762,21 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
         bad = False
         for a in range(n_agents):
             i = base + a
-            touched = advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip)
-            if touched != 0 and room_contact[i] == 0:
+            touched = advance_drone(i, e, action, pos, vel, rot, omega, motor, ou, rng, fp, ip, obst)
+            room = touched & TOUCHED_ROOM
+            if room != 0 and room_contact[i] == 0:
                 acc[e, ACC_ROOM] += 1.0
                 if after_grace:
                     acc[e, ACC_ROOM_GRACE] += 1.0
-            room_contact[i] = touched
+            room_contact[i] = room
+            if use_obst:
+                hit = 1 if touched & TOUCHED_OBSTACLE else 0
+                new_obst[a] = 1.0 if hit > obst_contact[i] else 0.0  # new: not touching at the last step
+                if new_obst[a] != 0.0:
+                    acc[e, ACC_OBST] += 1.0
+                    if after_grace:
+                        acc[e, ACC_OBST_GRACE] += 1.0
+                obst_contact[i] = hit
             if reortho:
                 reorthonormalise(i, rot)
             if not _is_finite_drone(i, pos, vel, rot, omega, motor):
@@ -623,8 +794,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
         gather_positions(e, pos, n_agents, px, py, pz)
         n_new = pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, px, py, pz, row)
         acc[e, ACC_COLLISIONS] += n_new
-        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, prox, px, py, pz, row, rng,
-                                  fp, ip, obs, rew, terms, nb_idx, nb_d2, True)
+        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, row,
+                                  rng, fp, ip, obs, rew, terms, nb_idx, nb_d2, True, obst, obst_index)
         # ---- episode statistics
         for a in range(n_agents):
             i = base + a
@@ -643,14 +814,14 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
             acc[e, ACC_TAIL1_STEPS] += 1.0
         if after_grace:
             acc[e, ACC_COLL_GRACE] += n_new
-        agent_metrics(e, pos, goal, new_coll, after_grace, jumped, agent_acc, n_agents)
+        agent_metrics(e, pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents)
         if done[e]:
             n_done += 1
     return n_done
 
 
 @njit(cache=True)
-def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs):
+def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst, obst_index):
     """Observation rows of the swarms with ``selected[e]`` (after a reset or a state change)."""
     n_agents = ip[I_N]
     k_slots = ip[I_K]
@@ -665,8 +836,8 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs):
     for e in range(selected.shape[0]):
         if selected[e]:
             gather_positions(e, pos, n_agents, px, py, pz)
-            observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, px, py, pz, row, rng,
-                          fp, ip, obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False)
+            observe_swarm(e, pos, vel, rot, omega, goal, dummy_action, dummy_vec, dummy_vec, dummy_vec, px, py, pz,
+                          row, rng, fp, ip, obs, dummy_rew, dummy_terms, nb_idx, nb_d2, False, obst, obst_index)
 
 
 @njit(cache=True)
@@ -693,18 +864,19 @@ def refresh_contacts_kernel(selected, pos, contact, fp, ip):
 def _spawn_drone(i, e, base, n_agents, check_below, center, pos, vel, rot, omega, motor, ou, room_contact, rng,
                  fp, spawn_half, spawn_min_z, spawn_min_sep):
     """Put drone ``i`` of swarm ``e`` at rest, motors off, random yaw, at a uniform point of the box
-    ``center[e] +- spawn_half`` (z cut to [spawn_min_z, ceiling]) at least ``spawn_min_sep`` from the
-    swarm's drones ``base .. base + check_below - 1`` other than ``i`` (rejection sampling, 100 tries,
-    then accepted anyway)."""
+    ``center[e] +- spawn_half[e]`` (per axis; z cut to [spawn_min_z, ceiling]) at least ``spawn_min_sep``
+    from the swarm's drones ``base .. base + check_below - 1`` other than ``i`` (rejection sampling, 100
+    tries, then accepted anyway)."""
     half = fp[F_ROOM_HALF]
     height = fp[F_ROOM_H]
     sep2 = spawn_min_sep * spawn_min_sep
-    z_lo = max(center[e, 2] - spawn_half, spawn_min_z)
-    z_hi = min(max(center[e, 2] + spawn_half, z_lo), height)
+    hx, hy, hz = spawn_half[e, 0], spawn_half[e, 1], spawn_half[e, 2]
+    z_lo = max(center[e, 2] - hz, spawn_min_z)
+    z_hi = min(max(center[e, 2] + hz, z_lo), height)
     x, y, z = 0.0, 0.0, 0.0
     for _ in range(100):
-        x = min(max(center[e, 0] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
-        y = min(max(center[e, 1] + spawn_half * (2.0 * uniform(rng, e) - 1.0), -half), half)
+        x = min(max(center[e, 0] + hx * (2.0 * uniform(rng, e) - 1.0), -half), half)
+        y = min(max(center[e, 1] + hy * (2.0 * uniform(rng, e) - 1.0), -half), half)
         z = z_lo + (z_hi - z_lo) * uniform(rng, e)
         ok = True
         for b in range(check_below):
@@ -735,8 +907,9 @@ def _spawn_drone(i, e, base, n_agents, check_below, center, pos, vel, rot, omega
 @njit(cache=True)
 def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
                  spawn_half, spawn_min_z, spawn_min_sep):
-    """Start a new episode for the selected swarms: every drone spawned by ``_spawn_drone`` in order,
-    kept ``spawn_min_sep`` away from the drones spawned before it."""
+    """Start a new episode for the selected swarms: every drone spawned by ``_spawn_drone`` in order
+    (box ``center[e] +- spawn_half[e]``, ``spawn_half`` float [E, 3]), kept ``spawn_min_sep`` away from the
+    drones spawned before it."""
     n_agents = ip[I_N]
     for e in range(selected.shape[0]):
         if not selected[e]:

@@ -48,7 +48,11 @@ NEIGHBOR_FIELDS: Dict[str, Tuple[Tuple[str, int, str], ...]] = {
         ("rel_vel", 3, "world_vector"),
     ),
 }
-OBSTACLE_FIELD = ("obstacle_sdf", 9, "scalar")  # signed distances on a 3x3 grid (issue: scenarios)
+# Signed distances (m) from the points (x + (a - 1) 0.1, y + (b - 1) 0.1), entry 3 a + b, around the drone's
+# (x, y) to the nearest obstacle surface, clipped to env.obstacle_sdf_max. Kind "scalar": unchanged by
+# ``transform``. (The 3x3 grid is aligned with the world axes, so strictly the field is invariant to
+# translations only; rotations about z by quarter turns permute its entries, which ``transform`` ignores.)
+OBSTACLE_FIELD = ("obstacle_sdf", 9, "scalar")
 
 
 @dataclass(frozen=True)

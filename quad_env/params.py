@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from quad_env.config import EnvConfig
+from quad_env.obstacles import lookup_pad
 
 # ---------------------------------------------------------------- float parameters (float64 [NUM_F])
 F_DT = 0  # physics dt, s
@@ -45,9 +46,16 @@ F_C_PROX = 31
 F_PROX_DIST = 32
 F_C_OMEGA = 33
 F_C_ACTION = 34
-F_C_FLOOR = 35
-F_C_TILT = 36
-NUM_F = 37
+F_OBST_ORIGIN = 35  # x (= y) of the obstacle grid's lower corner, m
+F_OBST_CELL = 36  # cell side, m
+F_OBST_R = 37  # cylinder radius, m
+F_OBST_CONTACT_R = 38  # axis distance at which a drone touches a cylinder: radius + collision_dist / 2, m
+F_OBST_SDF_MAX = 39  # the obstacle field is clipped to at most this, m
+F_C_OBST = 40  # penalty per new drone-obstacle contact
+F_OBST_LOOKUP_ORIGIN = 41  # x (= y) of the lower corner of the obstacle field's lookup grid (covers the room), m
+F_C_FLOOR = 42
+F_C_TILT = 43
+NUM_F = 44
 
 # ---------------------------------------------------------------- int parameters (int64 [NUM_I])
 I_N = 0  # drones per swarm
@@ -66,9 +74,13 @@ I_NB_DIM = 12  # entries per neighbour block
 I_TAIL1_STEPS = 13  # control steps in the last 1 s (dist_last_1s)
 I_TAIL3_STEPS = 14  # control steps in the last 3 s (dist_last_3s)
 I_GRACE_STEPS = 15  # collisions in the first this many control steps (1.5 s) do not count for the metrics
-NUM_I = 16
+I_OBSTACLES = 16  # 1: cylinders (physics, contacts, obstacle field)
+I_OBST_CELLS = 17  # cells per side of the obstacle grid
+I_OBST_LOOKUP = 18  # cells per side of the lookup grid (quad_env.obstacles.index_obstacles)
+NUM_I = 19
 
 METRIC_GRACE_S = 1.5  # grace period of the collision metrics, s
+SDF_SPACING = 0.1  # the obstacle field samples a 3 x 3 horizontal grid this far apart (m) around the drone
 
 # Reward terms, in the order of the kernel's ``terms`` rows.
 REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash")
@@ -118,6 +130,13 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     f[F_C_ACTION] = r.action
     f[F_C_FLOOR] = r.floor
     f[F_C_TILT] = r.tilt
+    f[F_OBST_ORIGIN] = -0.5 * cfg.obstacle_grid_cells * cfg.obstacle_cell_size
+    f[F_OBST_CELL] = cfg.obstacle_cell_size
+    f[F_OBST_R] = 0.5 * cfg.obstacle_diameter
+    f[F_OBST_CONTACT_R] = 0.5 * cfg.obstacle_diameter + 0.5 * p.collision_dist
+    f[F_OBST_SDF_MAX] = cfg.obstacle_sdf_max
+    f[F_C_OBST] = r.obstacle_collision
+    f[F_OBST_LOOKUP_ORIGIN] = f[F_OBST_ORIGIN] - lookup_pad(cfg) * cfg.obstacle_cell_size
 
     i = np.zeros(NUM_I, np.int64)
     i[I_N] = cfg.num_agents
@@ -136,4 +155,7 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     i[I_TAIL1_STEPS] = min(cfg.episode_steps, int(round(1.0 / cfg.control_dt)))
     i[I_TAIL3_STEPS] = min(cfg.episode_steps, int(round(3.0 / cfg.control_dt)))
     i[I_GRACE_STEPS] = int(round(METRIC_GRACE_S / cfg.control_dt))
+    i[I_OBSTACLES] = int(cfg.obstacles)
+    i[I_OBST_CELLS] = cfg.obstacle_grid_cells
+    i[I_OBST_LOOKUP] = cfg.obstacle_grid_cells + 2 * lookup_pad(cfg)
     return f, i

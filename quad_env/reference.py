@@ -5,7 +5,7 @@ code, so the tests can check the kernels against it (``tests/quad_env/test_refer
 """
 from __future__ import annotations
 
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
@@ -35,10 +35,51 @@ def rodrigues(w: np.ndarray, dt: float) -> np.ndarray:
     return np.where((angle > 1e-12 * dt)[:, None, None], E, np.eye(3))
 
 
+def cylinder_axes(grid: np.ndarray, cfg: EnvConfig) -> np.ndarray:
+    """Axes (x, y) of the cylinders of one swarm's occupancy grid [G, G]: [C, 2]."""
+    G, cell = cfg.obstacle_grid_cells, cfg.obstacle_cell_size
+    centres = (np.arange(G) + 0.5) * cell - 0.5 * G * cell  # [G]
+    ix, iy = np.nonzero(grid)
+    return np.stack([centres[ix], centres[iy]], axis=1)
+
+
+def reference_obstacle_field(xy: np.ndarray, axes: np.ndarray, cfg: EnvConfig) -> np.ndarray:
+    """Obstacle field of drones at ``xy`` [M, 2] among cylinders ``axes`` [C, 2]: [M, 9], entry 3 a + b at the
+    point xy + ((a - 1) h, (b - 1) h), h = 0.1 m; distance to the nearest surface, clipped to sdf_max."""
+    offsets = np.array([[da, db] for da in (-0.1, 0.0, 0.1) for db in (-0.1, 0.0, 0.1)])  # [9, 2]
+    points = xy[:, None, :] + offsets[None]  # [M, 9, 2]
+    if len(axes) == 0:
+        return np.full(points.shape[:2], cfg.obstacle_sdf_max)
+    dist = np.linalg.norm(points[:, :, None, :] - axes[None, None], axis=-1) - cfg.obstacle_diameter / 2  # [M, 9, C]
+    return np.minimum(dist.min(-1), cfg.obstacle_sdf_max)
+
+
+def reference_push_out(pos: np.ndarray, vel: np.ndarray, axes: np.ndarray, cfg: EnvConfig):
+    """Drones closer than (diameter + collision_dist) / 2 to their nearest cylinder axis go back onto that
+    circle and their inward radial velocity is reversed times the wall restitution. Returns a bool [M] of
+    the drones that touched (pos and vel are changed in place)."""
+    if len(axes) == 0:
+        return np.zeros(len(pos), bool)
+    reach = (cfg.obstacle_diameter + cfg.physics.collision_dist) / 2
+    rel = pos[:, None, :2] - axes[None]  # [M, C, 2]
+    d = np.linalg.norm(rel, axis=-1)  # [M, C]
+    nearest = d.argmin(1)
+    rows = np.arange(len(pos))
+    d_near, rel_near = d[rows, nearest], rel[rows, nearest]
+    touch = d_near < reach
+    safe = np.where(d_near > 0, d_near, 1.0)
+    n = np.where((d_near > 0)[:, None], rel_near / safe[:, None], np.array([1.0, 0.0]))  # [M, 2] outward
+    pos[touch, :2] = axes[nearest[touch]] + reach * n[touch]
+    vn = (vel[:, :2] * n).sum(1)
+    inward = touch & (vn < 0)
+    vel[inward, :2] -= (1 + cfg.physics.wall_restitution) * vn[inward, None] * n[inward]
+    return touch
+
+
 def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvConfig, step_count: np.ndarray,
                    contact: np.ndarray) -> Tuple[Dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray,
                                                  np.ndarray]:
-    """One control step of all swarms with every noise source off.
+    """One control step of all swarms with every noise source off and no obstacles.
 
     Args:
         state: dict of float64 arrays pos, vel, rot, omega, motor, goal (shapes as ``DroneState``).
@@ -46,6 +87,15 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
     Returns:
         new_state, obs [M, D] (float64), rew [M], terms [KERNEL_TERMS = 7, M] (the step kernel's terms; "crash" is added by VecQuadEnv), new_contact [E, N, N].
     """
+    return reference_step_obstacles(state, actions, cfg, step_count, contact, None, None)[:5]
+
+
+def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvConfig,
+                             step_count: np.ndarray, contact: np.ndarray, obstacles: Optional[np.ndarray],
+                             obstacle_contact: Optional[np.ndarray]):
+    """``reference_step`` with the cylinders ``obstacles`` [E, G, G] (None: none) and the drones' obstacle
+    contact memory ``obstacle_contact`` [M] (touching at the last step). Returns
+    new_state, obs, rew, terms, new_contact, new_obstacle_contact [M] (bool)."""
     p, rc = cfg.physics, cfg.reward
     N, K = cfg.num_agents, cfg.num_neighbors
     M = actions.shape[0]
@@ -61,6 +111,9 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
 
     u = np.clip(actions.astype(np.float64), -1, 1)
     cmd = (u + 1) / 2  # [M, 4]
+    with_obstacles = obstacles is not None
+    axes = [cylinder_axes(obstacles[e], cfg) if with_obstacles else np.zeros((0, 2)) for e in range(E)]
+    touched_obstacle = np.zeros(M, bool)
     arms = np.concatenate([MOTOR_XY * p.arm_xy, np.zeros((4, 1))], axis=1)  # [4, 3]
     for _ in range(cfg.substeps):
         motor = motor + gain * (np.sqrt(cmd) - motor)
@@ -98,6 +151,10 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
             out_vel = (hi & (vel[:, ax] > 0)) | (lo & (vel[:, ax] < 0))
             vel[:, ax] = np.where(out_vel, -p.wall_restitution * vel[:, ax], vel[:, ax])
             pos[:, ax] = np.clip(pos[:, ax], -p.room_half_width, p.room_half_width)
+        for e in range(E):  # cylinders, after the walls
+            rows = slice(e * N, (e + 1) * N)
+            p_e, v_e = pos[rows], vel[rows]
+            touched_obstacle[rows] |= reference_push_out(p_e, v_e, axes[e], cfg)
 
     steps = step_count + 1
     for e in range(E):
@@ -137,8 +194,14 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
 
     # ---- observations
     nb_dim = 21 if cfg.neighbor_obs == "full" else 6
-    D = 18 + K * (nb_dim + 1)
+    D = 18 + K * (nb_dim + 1) + (9 if cfg.obstacles else 0)
     obs = np.zeros((M, D))
+    if with_obstacles:
+        for e in range(E):
+            rows = slice(e * N, (e + 1) * N)
+            obs[rows, D - 9:] = reference_obstacle_field(pos[rows, :2], axes[e], cfg)
+    previous = np.zeros(M, bool) if obstacle_contact is None else obstacle_contact.astype(bool)
+    new_obstacle = touched_obstacle & ~previous
     obs[:, 0:3] = pos - goal
     obs[:, 3:6] = vel
     obs[:, 6:15] = rot.reshape(M, 9)
@@ -163,7 +226,7 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
     # ---- reward terms
     terms = np.stack([
         -rc.pos * ctrl_dt * np.linalg.norm(pos - goal, axis=1),
-        -rc.collision * new_coll,
+        -rc.collision * new_coll - rc.obstacle_collision * new_obstacle,
         -rc.proximity * ctrl_dt * prox,
         -rc.omega * ctrl_dt * np.linalg.norm(omega, axis=1),
         -rc.action * ctrl_dt * np.linalg.norm(u, axis=1),
@@ -171,4 +234,4 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
         -rc.tilt * ctrl_dt * (1.0 - rot[:, 2, 2]),
     ])
     new_state = dict(pos=pos, vel=vel, rot=rot, omega=omega, motor=motor, goal=goal)
-    return new_state, obs, terms.sum(0), terms, contact
+    return new_state, obs, terms.sum(0), terms, contact, touched_obstacle

@@ -1,18 +1,20 @@
 """Render an episode of any scenario: a 3-D trajectory PNG and an animated GIF (top and side views).
 
     python -m quad_env.render --scenario NAME --out DIR [--policy controller|random] [--steps 1500]
-                              [--seed 0] [--num-agents 8] [--frame-every 5]
+                              [--seed 0] [--num-agents 8] [--frame-every 5] [--obstacles]
 
 Headless (matplotlib Agg, Pillow for the GIF). ``controller`` is the hand-written goal-seeking controller,
 ``random`` uniform actions. A trained policy plugs in through ``record_episode(cfg, policy=callable)``,
 where ``callable(obs [N, D] float32, state: DroneState) -> actions [N, 4]`` (quad_env knows nothing of
-the trainer). Collisions (new drone-drone contacts) are marked with black crosses in both pictures.
+the trainer). Collisions (new drone-drone contacts) are marked with black crosses in both pictures;
+with obstacles (``--obstacles``, implied by the o_* scenarios) the cylinders are drawn (gray) and new
+drone-obstacle contacts marked with orange crosses at the drone.
 """
 from __future__ import annotations
 
 import argparse
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, List, Optional, Union
 
 import numpy as np
@@ -20,7 +22,8 @@ import numpy as np
 from quad_env.config import EnvConfig
 from quad_env.controller import GoalSeekingController
 from quad_env.demo import plot
-from quad_env.scenarios import SCENARIOS
+from quad_env.obstacles import obstacle_centers
+from quad_env.scenarios import SCENARIO_REGISTRY, SCENARIOS
 from quad_env.vec_env import DroneState, VecQuadEnv
 
 Policy = Callable[[np.ndarray, DroneState], np.ndarray]
@@ -36,6 +39,10 @@ class Episode:
     stats: dict  # episode_stats at the end
     dt: float  # control step, s
     title: str
+    cylinders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # [K, 2] axes (x, y) of the obstacles
+    cylinder_radius: float = 0.0
+    obstacle_hits: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # [H, 4] (step, x, y, z): drones
+    # at new obstacle contacts
 
 
 def make_policy(name: str, cfg: EnvConfig, seed: int) -> Policy:
@@ -58,6 +65,7 @@ def record_episode(cfg: EnvConfig, policy: Union[str, Policy] = "controller", st
     state = env.get_state()
     pos, goal, hits = [state.pos], [state.goal], []
     touching = env._contact[0].copy()  # [N, N] pairs a < b in contact (the simulator's memory)
+    on_cylinder, obstacle_hits = env._obst_contact.copy(), []  # [N] drones touching a cylinder
     for t in range(steps):
         obs, _, _, _ = env.step(act(obs, state))
         state = env.get_state()
@@ -66,15 +74,21 @@ def record_episode(cfg: EnvConfig, policy: Union[str, Policy] = "controller", st
         for a, b in zip(*np.nonzero(env._contact[0] > touching)):  # new contacts: mark the pair's midpoint
             hits.append([t + 1, *(0.5 * (state.pos[a] + state.pos[b]))])
         touching = env._contact[0].copy()
+        for a in np.flatnonzero(env._obst_contact > on_cylinder):  # new obstacle contacts: mark the drone
+            obstacle_hits.append([t + 1, *state.pos[a]])
+        on_cylinder = env._obst_contact.copy()
     name = env.scenario.episode_name(0)
     policy_name = policy if isinstance(policy, str) else getattr(policy, "__name__", "policy")
     title = f"{name}, {cfg.num_agents} drones, {policy_name}, {steps * cfg.control_dt:.1f} s"
+    cylinders = obstacle_centers(env.obstacle_grid[0], cfg) if cfg.obstacles else np.zeros((0, 2))
     return Episode(np.stack(pos), np.stack(goal), np.array(hits).reshape(-1, 4), env.episode_stats(0),
-                   cfg.control_dt, title)
+                   cfg.control_dt, title, cylinders, 0.5 * cfg.obstacle_diameter,
+                   np.array(obstacle_hits).reshape(-1, 4))
 
 
 def save_trajectory_png(ep: Episode, path: str) -> str:
-    plot(ep.pos, ep.goal[-1], path, ep.title, goal_track=ep.goal, collisions=ep.collisions[:, 1:])
+    plot(ep.pos, ep.goal[-1], path, ep.title, goal_track=ep.goal, collisions=ep.collisions[:, 1:],
+         cylinders=ep.cylinders, cylinder_radius=ep.cylinder_radius, obstacle_hits=ep.obstacle_hits[:, 1:])
     return path
 
 
@@ -84,10 +98,14 @@ def save_animation_gif(ep: Episode, path: str, frame_every: int = 5, room_half: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.animation import FuncAnimation, PillowWriter
+    from matplotlib.patches import Circle, Rectangle
 
     frames = list(range(0, len(ep.pos), frame_every))
     lo = np.minimum(ep.pos.min((0, 1)), ep.goal.min((0, 1))) - 0.5
     hi = np.maximum(ep.pos.max((0, 1)), ep.goal.max((0, 1))) + 0.5
+    if len(ep.cylinders):  # show the whole obstacle course
+        lo[:2] = np.minimum(lo[:2], ep.cylinders.min(0) - ep.cylinder_radius)
+        hi[:2] = np.maximum(hi[:2], ep.cylinders.max(0) + ep.cylinder_radius)
     lo, hi = np.maximum(lo, [-room_half, -room_half, 0.0]), np.minimum(hi, [room_half, room_half, 2 * room_half])
     fig, axes = plt.subplots(1, 2, figsize=(9, 4.5))
     views = ((0, 1, "top view", "y (m)"), (0, 2, "side view", "z (m)"))
@@ -100,19 +118,25 @@ def save_animation_gif(ep: Episode, path: str, frame_every: int = 5, room_half: 
         ax.set_title(name)
         ax.set_xlabel("x (m)")
         ax.set_ylabel(ylabel)
+        for cx, cy in ep.cylinders:  # floor to ceiling: a disc from above, a band from the side
+            r = ep.cylinder_radius
+            ax.add_patch(Circle((cx, cy), r, color="gray", alpha=0.35) if v == 1 else
+                         Rectangle((cx - r, 0.0), 2 * r, 2 * room_half, color="gray", alpha=0.2))
         goals = ax.scatter([], [], color="red", marker="*", s=40)
         drones = ax.scatter(ep.pos[0][:, u], ep.pos[0][:, v], c=colors, s=14)
         hits = ax.scatter([], [], color="black", marker="x", s=40)
+        obstacle_hits = ax.scatter([], [], color="darkorange", marker="X", s=40)
         trails = [ax.plot([], [], color=c, lw=0.6, alpha=0.6)[0] for c in colors]
-        artists.append((u, v, goals, drones, hits, trails))
+        artists.append((u, v, goals, drones, (hits, obstacle_hits), trails))
     text = fig.suptitle("")
 
     def draw(t):
-        for u, v, goals, drones, hits, trails in artists:
+        for u, v, goals, drones, marks, trails in artists:
             goals.set_offsets(ep.goal[t][:, [u, v]])
             drones.set_offsets(ep.pos[t][:, [u, v]])
-            recent = ep.collisions[(ep.collisions[:, 0] <= t) & (ep.collisions[:, 0] > t - 50)]  # last 0.5 s
-            hits.set_offsets(recent[:, [1 + u, 1 + v]] if len(recent) else np.zeros((0, 2)))
+            for events, scatter in zip((ep.collisions, ep.obstacle_hits), marks):
+                recent = events[(events[:, 0] <= t) & (events[:, 0] > t - 50)]  # the last 0.5 s
+                scatter.set_offsets(recent[:, [1 + u, 1 + v]] if len(recent) else np.zeros((0, 2)))
             start = max(0, t - 100)  # 1 s trails
             for a, line in enumerate(trails):
                 line.set_data(ep.pos[start:t + 1, a, u], ep.pos[start:t + 1, a, v])
@@ -162,12 +186,14 @@ def main(argv: Optional[List[str]] = None) -> List[str]:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--num-agents", type=int, default=8)
     ap.add_argument("--frame-every", type=int, default=5, help="control steps per GIF frame")
+    ap.add_argument("--obstacles", action="store_true", help="cylinders in the room (implied by o_* scenarios)")
     args = ap.parse_args(argv)
     if args.steps is not None and args.steps < 1:
         ap.error("--steps must be >= 1")
     if args.frame_every < 1:
         ap.error("--frame-every must be >= 1")
-    cfg = EnvConfig(num_agents=args.num_agents, scenario=args.scenario)
+    obstacles = args.obstacles or SCENARIO_REGISTRY[args.scenario].needs_obstacles
+    cfg = EnvConfig(num_agents=args.num_agents, scenario=args.scenario, obstacles=obstacles)
     ep = record_episode(cfg, args.policy, args.steps, args.seed)
     os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, f"{args.scenario}_{args.policy}_seed{args.seed}")
@@ -177,7 +203,7 @@ def main(argv: Optional[List[str]] = None) -> List[str]:
         print(p)
     s = ep.stats
     print(f"reward per agent {s['return']:.3f}, final mean distance {s['dist_final']:.3f} m, "
-          f"collisions {s['collisions']}, success {s['success_rate']:.0%}")
+          f"collisions {s['collisions']} (obstacles {s['obstacle_collisions']}), success {s['success_rate']:.0%}")
     return paths
 
 

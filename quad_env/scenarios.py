@@ -4,7 +4,9 @@ A scenario is a small class registered by name. The environment calls, with arra
 
 - ``allocate(num_envs)`` once: per-swarm scenario state (timers, curve parameters...) lives here;
 - ``reset(selected, goal, center, rng)`` when swarms start an episode: write ``goal [E*N, 3]`` and the
-  spawn ``center [E, 3]`` of every ``selected [E]`` swarm, drawing from the per-swarm streams ``rng``;
+  spawn ``center [E, 3]`` of every ``selected [E]`` swarm, drawing from the per-swarm streams ``rng``
+  (drones spawn in the box ``center +- spawn_half[e]``; the environment sets ``spawn_half`` to SPAWN_HALF
+  before every reset, a scenario may change it);
 - ``update(goal, step_count, rng)`` before every control step, only if ``dynamic`` is True (moving goals);
   ``step_count[e]`` is the number of control steps the swarm has taken, so the goal set here is the one
   of step ``step_count[e] + 1`` (time ``step_count * control_dt``). A discrete goal change (a jump, a swap,
@@ -12,8 +14,9 @@ A scenario is a small class registered by name. The environment calls, with arra
   Continuous goal motion (pursuit curves, breathing formations) is not a jump.
 
 Only the swarms with ``active[e]`` are updated (``mix`` runs several scenarios side by side, each on the
-swarms that drew it). All work on whole batches through numba kernels, never per drone in Python. ``SCENARIOS`` lists the
-registered names; ``make_scenario`` turns a name into an instance (unknown names list the valid ones).
+swarms that drew it; a replayed episode keeps its goals: ``set_active(selected, False)``). All work on
+whole batches through numba kernels, never per drone in Python. ``SCENARIOS`` lists the registered names;
+``make_scenario`` turns a name into an instance (unknown names list the valid ones).
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from quad_env.config import EnvConfig
+from quad_env.obstacles import OBSTACLE_CLEARANCE
 from quad_env.rng import uniform
 
 FORMATION_CENTER = (0.0, 0.0, 2.0)
@@ -204,6 +208,7 @@ class Scenario:
     name: str = ""
     min_agents: int = 1
     dynamic: bool = False  # True: ``update`` moves the goals every control step
+    needs_obstacles: bool = False  # True: an environment running it needs env.obstacles (VecQuadEnv checks)
 
     def __init__(self, cfg: EnvConfig):
         if cfg.num_agents < self.min_agents:
@@ -218,6 +223,11 @@ class Scenario:
         self.active = np.ones(num_envs, np.bool_)  # swarms this scenario updates
         self.jumped = np.zeros(num_envs, np.uint8)  # 1: the goals jumped at this step (metrics restart)
         self.scratch = np.zeros((self.num_agents, 3), np.float64)  # formation offsets
+        self.spawn_half = np.full((num_envs, 3), SPAWN_HALF)  # spawn box half-sizes per swarm (x, y, z)
+
+    def set_active(self, selected: np.ndarray, flag: bool) -> None:
+        """Switch the goal motion of the selected swarms on (fresh episodes) or off (replayed episodes)."""
+        self.active[selected] = flag
 
     @property
     def dt(self) -> float:
@@ -710,13 +720,119 @@ class DynamicFormations(Scenario):
                           self.num_agents)
 
 
+# ====================================================================== obstacle scenarios
+@njit(cache=True, inline="always")
+def _side_to_world(side, u, v):
+    """(along, across) coordinates of a course seen from ``side`` (0-3, quarter turns) -> world (x, y)."""
+    if side == 0:
+        return u, v
+    if side == 1:
+        return -v, u
+    if side == 2:
+        return -u, -v
+    return v, -u
+
+
+@njit(cache=True)
+def _reset_obstacle_course(selected, goal, center, spawn_half, rng, n_agents, same_goal, along_half, spawn_lo,
+                           spawn_hi, goal_lo, goal_hi, cz, goal_z_half, min_sep):
+    """Spawn box on one side of the obstacle grid, goals on the opposite side, the side drawn per episode.
+
+    In course coordinates (along, across), turned to the world by a random quarter turn: drones spawn with
+    across in [-spawn_hi, -spawn_lo] and along in +-along_half; goals lie at across in [goal_lo, goal_hi],
+    along in +-along_half, z in cz +- goal_z_half: one shared goal in the middle of that band
+    (``same_goal``) or one uniform goal per drone, at least ``min_sep`` apart (100 tries, then accepted).
+    """
+    for e in range(selected.shape[0]):
+        if not selected[e]:
+            continue
+        side = min(int(4.0 * uniform(rng, e)), 3)
+        x, y = _side_to_world(side, 0.0, -0.5 * (spawn_lo + spawn_hi))
+        center[e, 0], center[e, 1], center[e, 2] = x, y, cz
+        hu, hv = along_half, 0.5 * (spawn_hi - spawn_lo)
+        spawn_half[e, 0] = hu if side % 2 == 0 else hv
+        spawn_half[e, 1] = hv if side % 2 == 0 else hu
+        base = e * n_agents
+        if same_goal:
+            gx, gy = _side_to_world(side, 0.0, 0.5 * (goal_lo + goal_hi))
+            for a in range(n_agents):
+                goal[base + a, 0], goal[base + a, 1], goal[base + a, 2] = gx, gy, cz
+            continue
+        for a in range(n_agents):
+            gx, gy, gz = 0.0, 0.0, cz
+            for _ in range(100):
+                u = along_half * (2.0 * uniform(rng, e) - 1.0)
+                v = goal_lo + (goal_hi - goal_lo) * uniform(rng, e)
+                gz = cz + goal_z_half * (2.0 * uniform(rng, e) - 1.0)
+                gx, gy = _side_to_world(side, u, v)
+                ok = True
+                for b in range(a):
+                    d2 = (goal[base + b, 0] - gx) ** 2 + (goal[base + b, 1] - gy) ** 2 + (goal[base + b, 2] - gz) ** 2
+                    if d2 < min_sep * min_sep:
+                        ok = False
+                        break
+                if ok:
+                    break
+            goal[base + a, 0], goal[base + a, 1], goal[base + a, 2] = gx, gy, gz
+
+
+class _ObstacleCourse(Scenario):
+    """Drones start on one side of the obstacle grid and fly through it to goals on the opposite side (the
+    side is drawn per episode among the four). Spawns and goals lie in the free band between the grid and
+    the walls, so no cylinder has to yield; goals are static."""
+
+    needs_obstacles = True
+    same_goal = False
+    goal_z_half = 1.0  # goals at z in 2 +- this (o_random)
+    wall_gap = 0.1  # spawn points stay this far from the walls (goals: ROOM_MARGIN)
+
+    def __init__(self, cfg):
+        super().__init__(cfg)
+        half_grid = 0.5 * cfg.obstacle_grid_cells * cfg.obstacle_cell_size
+        room = cfg.physics.room_half_width
+        edge_surface = half_grid - 0.5 * cfg.obstacle_cell_size + 0.5 * cfg.obstacle_diameter
+        self.band_lo = max(half_grid, edge_surface + OBSTACLE_CLEARANCE) + 0.1  # clear of the outer row
+        self.goal_hi = room - ROOM_MARGIN
+        self.spawn_hi = room - self.wall_gap
+        self.along_half = half_grid - 0.5 * cfg.obstacle_cell_size  # the span of the cylinder axes
+        if self.goal_hi - self.band_lo < 0.2 or self.along_half <= 0:
+            raise ValueError(
+                f"scenario {self.name!r} needs a free band of >= 0.2 m between the obstacle grid and the walls "
+                f"(minus {ROOM_MARGIN} m): lower env.obstacle_grid_cells * env.obstacle_cell_size "
+                f"({cfg.obstacle_grid_cells} x {cfg.obstacle_cell_size} m) or raise env.physics.room_half_width "
+                f"({room} m)")
+
+    def reset(self, selected, goal, center, rng):
+        _reset_obstacle_course(selected, goal, center, self.spawn_half, rng, self.num_agents, self.same_goal,
+                               self.along_half, self.band_lo, self.spawn_hi, self.band_lo, self.goal_hi,
+                               FORMATION_CENTER[2], self.goal_z_half, SPAWN_MIN_SEP)
+
+
+@register_scenario
+class ObstacleRandom(_ObstacleCourse):
+    """Obstacle course: every drone has its own random static goal (at least 0.3 m from the others) on the
+    far side of the obstacle grid, at z in [1, 3] m."""
+
+    name = "o_random"
+
+
+@register_scenario
+class ObstacleStaticSameGoal(_ObstacleCourse):
+    """Obstacle course: one shared static goal at z = 2 m in the middle of the far side of the obstacle grid."""
+
+    name = "o_static_same_goal"
+    same_goal = True
+
+
 MIX_SCENARIOS = ("static_same_goal", "static_diff_goal", "dynamic_same_goal", "dynamic_diff_goal",
                  "ep_lissajous3D", "ep_rand_bezier", "swarm_vs_swarm", "swap_goals", "dynamic_formations")
+MIX_OBSTACLE_SCENARIOS = ("o_random", "o_static_same_goal")  # joined to the mix when obstacles are on
 
 
 @register_scenario
 class Mix(Scenario):
-    """Each episode of each swarm draws one of MIX_SCENARIOS uniformly (swarm_vs_swarm only if N >= 2);
+    """Each episode of each swarm draws one of MIX_SCENARIOS uniformly (swarm_vs_swarm only if N >= 2), and
+    with ``env.obstacles`` also MIX_OBSTACLE_SCENARIOS (every episode then has cylinders in the room);
     the episode stats name the scenario drawn."""
 
     name = "mix"
@@ -724,7 +840,8 @@ class Mix(Scenario):
 
     def __init__(self, cfg):
         super().__init__(cfg)
-        names = [n for n in MIX_SCENARIOS if SCENARIO_REGISTRY[n].min_agents <= cfg.num_agents]
+        candidates = MIX_SCENARIOS + (MIX_OBSTACLE_SCENARIOS if cfg.obstacles else ())
+        names = [n for n in candidates if SCENARIO_REGISTRY[n].min_agents <= cfg.num_agents]
         self.names = tuple(names)
         self.members = [SCENARIO_REGISTRY[n](cfg) for n in names]
 
@@ -734,6 +851,13 @@ class Mix(Scenario):
         for m in self.members:
             m.allocate(num_envs)
             m.jumped = self.jumped  # one flag array shared by all (each swarm runs one member)
+            m.spawn_half = self.spawn_half  # ... and so is the spawn box
+
+    def set_active(self, selected, flag):
+        super().set_active(selected, flag)
+        if not flag:  # (a fresh episode activates the member it draws, in ``reset``)
+            for m in self.members:
+                m.active[selected] = False
 
     def reset(self, selected, goal, center, rng):
         _draw_choice(selected, rng, len(self.members), self.choice)

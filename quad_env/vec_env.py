@@ -5,9 +5,13 @@ episode ends (a truncation: ``terminated`` is always False). The arrays that ``r
 (and ``final_obs``, ``reward_terms``) are preallocated buffers that the next call overwrites: copy what
 you keep.
 
-Seeding: ``seed`` makes one SplitMix64 stream per swarm (``quad_env.rng``); every random draw (spawn,
-goals, thrust noise, sensor noise, collision kicks) comes from the swarm's stream in a fixed order, so the
-same seed and the same actions give bit-identical transitions.
+Seeding: ``seed`` makes one SplitMix64 stream per swarm (``quad_env.rng``); every random draw (obstacles,
+spawn, goals, thrust noise, sensor noise, collision kicks, replay choices) comes from the swarm's stream in
+a fixed order, so the same seed and the same actions give bit-identical transitions.
+
+Obstacles (``cfg.obstacles``): a new cylinder layout per swarm and episode (``quad_env.obstacles``);
+``obstacle_grid`` / ``set_obstacles`` read and write it. Collision replay (``cfg.replay_prob > 0``): see
+``quad_env.replay``; only automatic resets replay.
 
 Non-finite states: the kernel checks every drone after its physics. With ``cfg.nan_policy == "raise"``
 (default) ``step`` raises ``FloatingPointError`` naming the swarms, and the env must be ``reset()``.
@@ -33,13 +37,17 @@ import numpy as np
 
 from quad_env.config import EnvConfig
 from quad_env.kernels import (
-    ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_RETURN,
-    ACC_RESPAWNS, ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS, ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE,
-    AG_REACHED, NUM_ACC, NUM_AGENT_ACC, all_finite, observe_kernel, refresh_contacts_kernel, respawn_kernel,
-    spawn_kernel, step_with_metrics_kernel,
+    ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_OBST,
+    ACC_OBST_GRACE, ACC_RESPAWNS, ACC_RETURN, ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS,
+    ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE, AG_OBST_GRACE, AG_REACHED, NUM_ACC, NUM_AGENT_ACC, all_finite,
+    observe_kernel, refresh_contacts_kernel, respawn_kernel, spawn_kernel, step_with_metrics_kernel,
 )
-from quad_env.obs_layout import ObsLayout
-from quad_env.params import I_EP_STEPS, REWARD_TERMS, pack_params
+from quad_env.obstacles import (
+    INDEX_SLOTS, OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin, index_obstacles, index_spec,
+    lookup_pad,
+)
+from quad_env.params import I_EP_STEPS, REWARD_TERMS, SDF_SPACING, pack_params
+from quad_env.replay import CollisionReplay
 from quad_env.rng import seed_streams
 from quad_env.scenarios import SPAWN_HALF, SPAWN_MIN_SEP, SPAWN_MIN_Z, make_scenario
 
@@ -78,7 +86,10 @@ class VecQuadEnv:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
         self.cfg = cfg
         self.scenario = make_scenario(cfg.scenario, cfg)
-        self.layout = ObsLayout(cfg.num_neighbors, cfg.neighbor_obs)
+        if self.scenario.needs_obstacles and not cfg.obstacles:
+            raise ValueError(f"scenario {cfg.scenario!r} flies through obstacles: set env.obstacles=True "
+                             "(which also adds the 9-entry obstacle field to the observation)")
+        self.layout = cfg.obs_layout()
         self.num_envs = E = int(num_envs)
         self.num_agents = N = cfg.num_agents
         self.num_drones = M = E * N
@@ -101,6 +112,11 @@ class VecQuadEnv:
         self._step_count = np.zeros(E, np.int64)
         self._acc = np.zeros((E, NUM_ACC), np.float64)
         self._agent_acc = np.zeros((M, NUM_AGENT_ACC), np.float64)
+        G = cfg.obstacle_grid_cells if cfg.obstacles else 1
+        self._obst = np.zeros((E, G, G), np.uint8)  # 1 = a cylinder in cell (ix, iy) (quad_env.obstacles)
+        L = G + 2 * lookup_pad(cfg) if cfg.obstacles else 1
+        self._obst_index = np.zeros((E, L, L, INDEX_SLOTS + 1 if cfg.obstacles else 1), index_spec(cfg)[0])
+        self._obst_contact = np.zeros(M, np.uint8)
         self._rng = seed_streams(seed, E)
         self._fp, self._ip = pack_params(cfg, D, noise=True)
         self._fp_quiet, self._ip_quiet = pack_params(cfg, D, noise=False)
@@ -123,6 +139,10 @@ class VecQuadEnv:
         self._floor_on = cfg.respawn_on_floor or cfg.reward.crash > 0
         self._on_floor = np.zeros(M, bool)  # touching the floor after the previous step
         self._crash_row = REWARD_TERMS.index("crash")
+        self._replay = (CollisionReplay(E, N, self._obst.shape[1:], cfg.control_dt, cfg.replay_buffer_size,
+                                        cfg.replay_prob) if cfg.replay_prob > 0 else None)
+        self._replayed_name: List[Optional[str]] = [None] * E  # scenario name of a replayed episode
+        self._everyone = np.ones(E, bool)
         self.reset()
 
     # ------------------------------------------------------------------ public buffers
@@ -142,8 +162,7 @@ class VecQuadEnv:
         Episodes in progress are dropped without stats."""
         if seed is not None:
             self.seed(seed)
-        everyone = np.ones(self.num_envs, bool)
-        self._reset_swarms(everyone)
+        self._reset_swarms(self._everyone.copy())
         self._truncated[:] = False
         self._rew[:] = 0.0
         self._terms[:] = 0.0
@@ -170,9 +189,12 @@ class VecQuadEnv:
                                           self._goal, self._contact, self._room_contact, self._rng,
                                           self._step_count, self._fp, self._ip, self._obs, self._rew, self._terms,
                                           self._done, self._diverged, self._acc, self.scenario.jumped,
-                                          self._agent_acc)
+                                          self._agent_acc, self._obst, self._obst_index, self._obst_contact)
         if self._floor_on:
             self._floor_contacts()
+        if self._replay is not None:
+            self._replay.after_step(self._step_count, self._acc[:, ACC_COLL_GRACE] + self._acc[:, ACC_OBST_GRACE],
+                                    self._obst, self._episode_name, self._state_arrays())
         if n_done:
             self._finish_episodes()
         else:
@@ -192,8 +214,14 @@ class VecQuadEnv:
         goal -- mean distance over 5 consecutive steps < 0.5 m at some step after the last goal jump --
         and had no drone-drone contact after the grace period); ``agent_success``, ``agent_collided``
         (bool [N]: the same per drone); ``rew_<term>`` (per-term episode reward, mean per agent: they sum
-        to ``return``); ``diverged`` (the episode ended on a non-finite state); ``respawns`` (drones put back
-        in the air by ``env.respawn_on_floor``).
+        to ``return``); ``diverged`` (the episode ended on a non-finite state).
+        With obstacles, ``collisions`` and ``collisions_after_grace`` count drone-drone contacts (pairs) plus
+        new drone-obstacle contacts (drones): the paper's Col; ``obstacle_collisions`` and
+        ``obstacle_collisions_after_grace`` count the latter alone, ``agent_hit_obstacle`` (bool [N]) marks
+        the drones with one after the grace period, and success also needs no obstacle contact after the
+        grace period (``inter_collision_rate`` stays drone-drone only). ``replayed``: the episode restarted
+        from a stored pre-collision state (``env.replay_prob``); ``respawns``: drones put back in the air by
+        ``env.respawn_on_floor``.
         """
         out, self._episode_stats = self._episode_stats, []
         return out
@@ -201,9 +229,29 @@ class VecQuadEnv:
     def observe(self) -> np.ndarray:
         """Rebuild the observation of the current state (sensor noise as configured) and return the
         obs buffer float32 [E*N, D]."""
-        observe_kernel(np.ones(self.num_envs, bool), self._pos, self._vel, self._rot, self._omega, self._goal,
-                       self._rng, self._fp, self._ip, self._obs)
+        observe_kernel(self._everyone, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng,
+                       self._fp, self._ip, self._obs, self._obst, self._obst_index)
         return self._obs
+
+    # ------------------------------------------------------------------ obstacles
+    @property
+    def obstacle_grid(self) -> np.ndarray:
+        """uint8 [E, G, G]: 1 where a grid cell holds a cylinder (``quad_env.obstacles``). The env's own
+        array: change it through ``set_obstacles``."""
+        return self._obst
+
+    def set_obstacles(self, grid) -> None:
+        """Replace the cylinder layout of every swarm (bool/int [E, G, G]) for the rest of the episode; the
+        drones' obstacle-contact memory is cleared and the observation rebuilt."""
+        if not self.cfg.obstacles:
+            raise ValueError("set_obstacles: this env has no obstacles (env.obstacles=False)")
+        grid = np.asarray(grid)
+        if grid.shape != self._obst.shape:
+            raise ValueError(f"set_obstacles: grid must have shape {self._obst.shape}, got {grid.shape}")
+        self._obst[...] = grid != 0
+        self._index_obstacles(self._everyone)
+        self._obst_contact[:] = 0
+        self.observe()
 
     # ------------------------------------------------------------------ low-level state API
     def get_state(self) -> DroneState:
@@ -217,8 +265,8 @@ class VecQuadEnv:
         """Overwrite any part of the state of all drones (arrays shaped as in ``DroneState``).
 
         Rotations must be orthonormal with det +1 (to 1e-6), motor speeds in [0, 1]. Afterwards the
-        contact memory is set to the pairs touching now (they do not count as new collisions) and the
-        observation buffer is rebuilt.
+        contact memory is set to the pairs touching now (they do not count as new collisions), the room and
+        obstacle contact memories are cleared and the observation buffer is rebuilt.
         """
         M = self.num_drones
         spec = dict(pos=(pos, (M, 3), self._pos), vel=(vel, (M, 3), self._vel), rot=(rot, (M, 3, 3), self._rot),
@@ -243,10 +291,10 @@ class VecQuadEnv:
             raise ValueError("set_state: motor speeds must be in [0, 1]")
         for name, arr in checked.items():
             spec[name][2][...] = arr
-        everyone = np.ones(self.num_envs, bool)
-        refresh_contacts_kernel(everyone, self._pos, self._contact, self._fp, self._ip)
+        refresh_contacts_kernel(self._everyone, self._pos, self._contact, self._fp, self._ip)
         self._room_contact[:] = 0
         self._on_floor[:] = self._pos[:, 2] <= self.cfg.physics.floor_z  # resting drones are no new contact
+        self._obst_contact[:] = 0
         self.observe()
 
     def simulate(self, actions: np.ndarray, noise: bool = False) -> DroneState:
@@ -266,7 +314,8 @@ class VecQuadEnv:
         step_with_metrics_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
                                  self._goal, self._contact, self._room_contact, self._rng, self._step_count, fp,
                                  ip, self._obs, self._rew, self._terms, done, diverged, self._acc,
-                                 self.scenario.jumped, self._agent_acc)
+                                 self.scenario.jumped, self._agent_acc, self._obst, self._obst_index,
+                                 self._obst_contact)
         if diverged.any():
             raise FloatingPointError(f"simulate: non-finite state in swarms {np.flatnonzero(diverged).tolist()}")
         return self.get_state()
@@ -284,10 +333,53 @@ class VecQuadEnv:
             raise ValueError(f"actions contain NaN or inf (rows {bad[:10].tolist()}{'...' if bad.size > 10 else ''})")
         return a
 
-    def _reset_swarms(self, selected: np.ndarray) -> None:
-        self.scenario.reset(selected, self._goal, self._center, self._rng)
-        spawn_kernel(selected, self._center, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
-                     self._room_contact, self._rng, self._fp, self._ip, SPAWN_HALF, SPAWN_MIN_Z, SPAWN_MIN_SEP)
+    def _index_obstacles(self, selected: np.ndarray) -> None:
+        """Rebuild the obstacle field's lookup index of the selected swarms (after their layout changed)."""
+        cfg = self.cfg
+        index_obstacles(selected, self._obst, self._obst_index, grid_origin(cfg), cfg.obstacle_cell_size,
+                        0.5 * cfg.obstacle_diameter, cfg.obstacle_sdf_max, lookup_pad(cfg), SDF_SPACING + 1e-6,
+                        index_spec(cfg)[1])
+
+    def _state_arrays(self):
+        return self._pos, self._vel, self._rot, self._omega, self._motor, self._ou, self._goal
+
+    def _episode_name(self, e: int) -> str:
+        name = self._replayed_name[e]
+        return self.scenario.episode_name(e) if name is None else name
+
+    def _reset_swarms(self, selected: np.ndarray, allow_replay: bool = False) -> None:
+        """Start new episodes in the selected swarms. Draw order per swarm: replay choice (automatic resets
+        with replay on), obstacles, scenario goals, spawn points."""
+        fresh = selected
+        replayed = np.zeros_like(selected)
+        if allow_replay and self._replay is not None:
+            choice = self._replay.draw(selected, self._rng)
+            replayed = selected & (choice >= 0)
+            fresh = selected & ~replayed
+        cfg = self.cfg
+        if cfg.obstacles:
+            draw_obstacles(fresh, self._obst, self._rng, cfg.obstacle_density)
+        self.scenario.spawn_half[fresh] = SPAWN_HALF
+        self.scenario.set_active(fresh, True)
+        self.scenario.reset(fresh, self._goal, self._center, self._rng)
+        spawn_kernel(fresh, self._center, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
+                     self._room_contact, self._rng, self._fp, self._ip, self.scenario.spawn_half, SPAWN_MIN_Z,
+                     SPAWN_MIN_SEP)
+        if cfg.obstacles:
+            clear_spawns_and_goals(fresh, self._obst, self._pos, self._goal, self.num_agents, grid_origin(cfg),
+                                   cfg.obstacle_cell_size, 0.5 * cfg.obstacle_diameter, OBSTACLE_CLEARANCE)
+        for e in np.flatnonzero(fresh):
+            self._replayed_name[e] = None
+        if replayed.any():
+            arrays = dict(zip(("pos", "vel", "rot", "omega", "motor", "thrust_noise", "goal"), self._state_arrays()))
+            for e in np.flatnonzero(replayed):
+                name = self._replay.restore(int(e), int(self._replay.choice[e]), arrays, self._obst, self.num_agents)
+                self._replayed_name[e] = name
+                self._room_contact[e * self.num_agents:(e + 1) * self.num_agents] = 0
+            self.scenario.set_active(replayed, False)  # the stored goals stay put
+        if cfg.obstacles:
+            self._index_obstacles(selected)
+        self._obst_contact[np.repeat(selected, self.num_agents)] = 0
         refresh_contacts_kernel(selected, self._pos, self._contact, self._fp, self._ip)
         self._step_count[selected] = 0
         self._on_floor[np.repeat(selected, self.num_agents)] = False
@@ -296,8 +388,11 @@ class VecQuadEnv:
         self.scenario.jumped[selected] = 0
         self._diverged[selected] = False
         self._needs_reset[selected] = False
+        if self._replay is not None:
+            self._replay.start_episodes(selected, replayed)
+            self._replay.snapshot(selected, self._step_count, *self._state_arrays())
         observe_kernel(selected, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
-                       self._ip, self._obs)
+                       self._ip, self._obs, self._obst, self._obst_index)
 
     def _floor_contacts(self) -> None:
         """After a step: ``reward.crash`` for every new floor contact, then (``respawn_on_floor``) those
@@ -322,14 +417,15 @@ class VecQuadEnv:
         if rows.size == 0:
             return
         respawn_kernel(rows, self._center, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
-                       self._room_contact, self._rng, self._fp, self._ip, SPAWN_HALF, SPAWN_MIN_Z, SPAWN_MIN_SEP)
+                       self._room_contact, self._rng, self._fp, self._ip, self.scenario.spawn_half, SPAWN_MIN_Z,
+                       SPAWN_MIN_SEP)
         self._on_floor[rows] = False
         swarms = np.zeros(E, bool)
         swarms[rows // N] = True
         self._acc[:, ACC_RESPAWNS] += np.bincount(rows // N, minlength=E)
         refresh_contacts_kernel(swarms, self._pos, self._contact, self._fp, self._ip)
         observe_kernel(swarms, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
-                       self._ip, self._obs)
+                       self._ip, self._obs, self._obst, self._obst_index)
 
     def _finish_episodes(self) -> None:
         """Record stats, save final observations and restart the swarms that finished."""
@@ -349,7 +445,7 @@ class VecQuadEnv:
         for e in np.flatnonzero(done):
             self._episode_stats.append(self.episode_stats(int(e)))
         if self.auto_reset:
-            self._reset_swarms(done.copy())
+            self._reset_swarms(done.copy(), allow_replay=True)
         else:
             self._needs_reset |= done
 
@@ -357,27 +453,32 @@ class VecQuadEnv:
         """Stats of swarm ``e``'s episode so far (the dict ``pop_episode_stats`` returns at its end)."""
         acc, N = self._acc[e], self.num_agents
         agents = self._agent_acc[e * N:(e + 1) * N]
-        collided = agents[:, AG_COLL_GRACE] > 0  # [N]
-        success = (agents[:, AG_REACHED] > 0) & ~collided  # [N]
+        collided = agents[:, AG_COLL_GRACE] > 0  # [N] drone-drone
+        hit_obstacle = agents[:, AG_OBST_GRACE] > 0  # [N]
+        success = (agents[:, AG_REACHED] > 0) & ~collided & ~hit_obstacle  # [N]
         mean_of = lambda total, steps: total / steps if steps > 0 else float("nan")  # noqa: E731
         stats = {
-            "scenario": self.scenario.episode_name(e),
+            "scenario": self._episode_name(e),
             "return": acc[ACC_RETURN] / N,
             "length": int(self._step_count[e]),
             "dist_final": acc[ACC_DIST_FINAL],
             "dist_last_5s": mean_of(acc[ACC_DIST_TAIL], acc[ACC_TAIL_STEPS]),
             "dist_last_3s": mean_of(acc[ACC_DIST_TAIL3], acc[ACC_TAIL3_STEPS]),
             "dist_last_1s": mean_of(acc[ACC_DIST_TAIL1], acc[ACC_TAIL1_STEPS]),
-            "collisions": int(acc[ACC_COLLISIONS]),
+            "collisions": int(acc[ACC_COLLISIONS] + acc[ACC_OBST]),
             "room_contacts": int(acc[ACC_ROOM]),
-            "collisions_after_grace": int(acc[ACC_COLL_GRACE]),
+            "collisions_after_grace": int(acc[ACC_COLL_GRACE] + acc[ACC_OBST_GRACE]),
+            "obstacle_collisions": int(acc[ACC_OBST]),
+            "obstacle_collisions_after_grace": int(acc[ACC_OBST_GRACE]),
             "room_contacts_after_grace": int(acc[ACC_ROOM_GRACE]),
             "inter_collision_rate": float(collided.mean()),
             "success_rate": float(success.mean()),
             "agent_success": success.copy(),
             "agent_collided": collided.copy(),
+            "agent_hit_obstacle": hit_obstacle.copy(),
             "diverged": bool(self._diverged[e]),
             "respawns": int(acc[ACC_RESPAWNS]),
+            "replayed": bool(self._replay is not None and self._replay.replayed[e]),
         }
         for k, name in enumerate(REWARD_TERMS):
             stats[f"rew_{name}"] = acc[ACC_TERMS + k] / N

@@ -125,7 +125,6 @@ class LoadedPolicy:
 
 def load_checkpoint_policy(path: str) -> LoadedPolicy:
     """The policy of a checkpoint file, or of a run directory's latest valid checkpoint."""
-    from quad_env import ObsLayout
     from swarm_appo.checkpoint import load_checkpoint, load_latest_checkpoint
     from swarm_appo.config import config_from_dict
     from swarm_appo.model import model_factory
@@ -139,7 +138,7 @@ def load_checkpoint_policy(path: str) -> LoadedPolicy:
     else:
         raise FileNotFoundError(f"checkpoint {path} does not exist (give a checkpoint file or a run directory)")
     cfg = config_from_dict(state["config"])
-    factory = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)
+    factory = model_factory(cfg.env.obs_layout(), cfg.model)
     model = factory()
     model.load_state_dict(state["learner"]["model"])
     return LoadedPolicy(cfg, model, factory, int(state.get("agent_steps", 0)),

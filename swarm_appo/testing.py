@@ -6,7 +6,6 @@ from typing import Optional, Sequence
 
 import torch
 
-from quad_env import ObsLayout
 from swarm_appo.checkpoint import save_checkpoint
 from swarm_appo.config import config_to_dict, load_config
 from swarm_appo.model import model_factory
@@ -23,7 +22,7 @@ def untrained_checkpoint(root, name: str, overrides: Sequence[str] = (), encoder
     if encoder_kwargs is not None:
         cfg.model.encoder_kwargs = dict(encoder_kwargs)
     torch.manual_seed(seed)
-    model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)()
+    model = model_factory(cfg.env.obs_layout(), cfg.model)()
     state = {"format": CHECKPOINT_FORMAT, "learner": {"model": model.state_dict()}, "agent_steps": agent_steps,
              "config": config_to_dict(cfg)}
     run_dir = Path(root) / name

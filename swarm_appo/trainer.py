@@ -24,7 +24,7 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 import torch
 
-from quad_env import REWARD_TERMS, EnvConfig, ObsLayout, VecQuadEnv
+from quad_env import REWARD_TERMS, EnvConfig, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
 from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
@@ -173,7 +173,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     seed_everything(cfg.runner.seed)
     torch.set_num_threads(cfg.runner.learner_threads or os.cpu_count() or 1)
     device = pick_device(cfg.runner.device)
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     make_model = model_factory(layout, cfg.model)
     learner = Learner(make_model(), cfg.algo, device, seed=cfg.runner.seed)
     agent_steps = 0

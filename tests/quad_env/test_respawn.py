@@ -96,3 +96,11 @@ def test_respawn_is_reproducible_by_seed(quiet_cfg):
         runs.append((np.array(trace), env.episode_stats(0)["respawns"] + env.episode_stats(1)["respawns"]))
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
     assert runs[0][1] == runs[1][1] >= 8
+
+
+def test_respawn_with_obstacles_is_refused_with_both_keys_named():
+    import pytest
+
+    from quad_env import EnvConfig
+    with pytest.raises(ValueError, match="env.respawn_on_floor.*env.obstacles"):
+        EnvConfig(respawn_on_floor=True, obstacles=True).validate()

@@ -7,7 +7,7 @@ from quad_env.scenarios import Scenario, formation_offsets
 
 
 ALL = ("static_same_goal", "static_diff_goal", "dynamic_same_goal", "dynamic_diff_goal", "ep_lissajous3D",
-       "ep_rand_bezier", "swarm_vs_swarm", "swap_goals", "dynamic_formations", "mix")
+       "ep_rand_bezier", "swarm_vs_swarm", "swap_goals", "dynamic_formations", "o_random", "o_static_same_goal", "mix")
 
 
 def test_registry_lists_the_scenarios_and_rejects_unknown_names():
