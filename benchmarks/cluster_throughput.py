@@ -31,6 +31,7 @@ import argparse
 import datetime
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -50,12 +51,14 @@ FETCH_KEYS = ("perf/fetch_share", "perf/remote_fetch_share", "perf/remote_fragme
 
 class CpuMonitor:
     """Cores used by this process and its descendants vs by everything else on the machine, sampled each second
-    from /proc while the ``with`` block runs (Linux only; zeros elsewhere)."""
+    from /proc while the ``with`` block runs (Linux only). ``figures(t0, t1)`` gives the means over a window
+    of wall-clock time (``time.time()``, as in metrics.jsonl records), e.g. a run's steady state."""
 
     def __init__(self, interval_s: float = 1.0):
         self.interval_s = interval_s
         self.ticks = os.sysconf("SC_CLK_TCK")
-        self.own = self.machine = 0.0  # CPU-seconds
+        self.own = self.machine = 0.0  # CPU-seconds so far
+        self.samples: List[tuple] = []  # (time.time(), own CPU-s, machine busy CPU-s), cumulative
         self._last: Dict[int, float] = {}
         self._stop = threading.Event()
 
@@ -96,6 +99,7 @@ class CpuMonitor:
         busy = self._busy()
         self.machine += busy - self._busy_last
         self._busy_last = busy
+        self.samples.append((time.time(), self.own, self.machine))
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval_s):
@@ -107,6 +111,7 @@ class CpuMonitor:
             self._last, self._busy_last = self._own_times(), self._busy()
         except OSError:
             return self
+        self.samples.append((time.time(), 0.0, 0.0))
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
         return self
@@ -118,10 +123,16 @@ class CpuMonitor:
             self._thread.join()
             self._sample()
 
-    def figures(self) -> Dict[str, float]:
-        """``own_cores`` and ``other_cores``: mean cores busy with this run, and with everything else."""
-        wall = max(getattr(self, "wall", 0.0), 1e-9)
-        return {"own_cores": self.own / wall, "other_cores": max(self.machine - self.own, 0.0) / wall}
+    def figures(self, t0: float, t1: float) -> Dict[str, float]:
+        """``own_cores`` and ``other_cores``: mean cores busy with this run, and with everything else, between
+        the samples nearest to wall-clock times ``t0`` and ``t1``."""
+        if len(self.samples) < 2:
+            return {"own_cores": float("nan"), "other_cores": float("nan")}
+        a = min(self.samples, key=lambda x: abs(x[0] - t0))
+        b = min(self.samples, key=lambda x: abs(x[0] - t1))
+        wall = max(b[0] - a[0], 1e-9)
+        own = (b[1] - a[1]) / wall
+        return {"own_cores": own, "other_cores": max((b[2] - a[2]) / wall - own, 0.0)}
 
 
 def overrides(seconds: float, run_dir: Path, name: str, workers: int) -> List[str]:
@@ -130,16 +141,20 @@ def overrides(seconds: float, run_dir: Path, name: str, workers: int) -> List[st
             f"runner.run_dir={run_dir}", f"runner.name={name}"]
 
 
-def transfer_figures(run_dir: Path) -> Dict[str, float]:
-    """Means of the fetch metrics over the steady part of the run (same warm-up rule as measure_run)."""
+def steady_figures(run_dir: Path, cpu: CpuMonitor) -> Dict[str, float]:
+    """measure_run's figures, the fetch metrics and the cores used, all over the steady part of the run
+    (the same warm-up rule as measure_run: records after 30% of the logged time)."""
+    out = measure_run(run_dir)
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     records = [r for r in records if "perf/learner_share" in r]
     t0, t1 = records[0]["charts/elapsed_s"], records[-1]["charts/elapsed_s"]
-    steady = [r for r in records if r["charts/elapsed_s"] >= t0 + 0.3 * (t1 - t0)] or records[-2:]
-    out = {}
+    steady = [r for r in records if r["charts/elapsed_s"] >= t0 + 0.3 * (t1 - t0)]
+    steady = steady if len(steady) >= 2 else records[-2:]
     for key in FETCH_KEYS:
         values = [r[key] for r in steady if r.get(key) is not None]
         out[key] = float(np.mean(values)) if values else float("nan")
+    out.update(cpu.figures(steady[0]["time"], steady[-1]["time"]))
+    out["sps_per_core"] = out["sps"] / out["own_cores"] if out["own_cores"] > 0 else float("nan")
     return out
 
 
@@ -157,8 +172,7 @@ def one_node_row(workers: int, seconds: float, tmp: Path, max_workers: int, repe
                            progress=False)
     finally:
         ray.shutdown()
-    row = dict(setup="1 node", workers=workers, **measure_run(result.run_dir), **transfer_figures(result.run_dir),
-               **cpu.figures())
+    row = dict(setup="1 node", workers=workers, **steady_figures(result.run_dir, cpu))
     print(f"1 node, {workers} workers: {row['sps']:,.0f} agent-steps/s, fetch {row['perf/fetch_ms_local']:.1f} ms "
           f"per fragment; cores: this run {row['own_cores']:.2f}, others {row['other_cores']:.2f}", flush=True)
     return row
@@ -183,8 +197,7 @@ def two_node_row(workers: int, seconds: float, cpus_per_node: float, tmp: Path, 
     learner = placement["learner"]["node_id"]
     on_head = sum(w["node_id"] == learner for w in placement["rollout_workers"])
     fragments = placement["fragments_per_node"]
-    row = dict(setup="2 nodes", workers=workers, job_s=job_s, **measure_run(run_dir), **transfer_figures(run_dir),
-               **cpu.figures())
+    row = dict(setup="2 nodes", workers=workers, job_s=job_s, **steady_figures(run_dir, cpu))
     row["placement"] = (f"learner + {on_head} worker(s) on the head ({fragments.get(learner, 0)} fragments), "
                         f"{workers - on_head} on the second node "
                         f"({sum(v for k, v in fragments.items() if k != learner)} fragments)")
@@ -216,17 +229,22 @@ def main(argv=None) -> None:
     tmp = Path(tempfile.mkdtemp(prefix="cluster_bench_"))
     counts = [int(k) for k in args.workers.split(",")]
     rows = []
-    for repeat in range(args.repeats):
-        rows += [one_node_row(k, args.seconds, tmp, max(counts), repeat) for k in counts]
-        if not args.no_cluster:
-            rows.append(two_node_row(args.cluster_workers, args.seconds, args.cpus_per_node, tmp, repeat))
+    try:
+        for repeat in range(args.repeats):
+            rows += [one_node_row(k, args.seconds, tmp, max(counts), repeat) for k in counts]
+            if not args.no_cluster:
+                rows.append(two_node_row(args.cluster_workers, args.seconds, args.cpus_per_node, tmp, repeat))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     rows.sort(key=lambda r: (r["setup"], r["workers"]))
 
-    header = ("| setup | rollout actors | agent-steps/s | cores used: this run / others | learner share | "
+    header = ("| setup | rollout actors | agent-steps/s | cores used: this run / others | agent-steps per "
+              "CPU-second of this run | learner share | "
               "fragment MiB | fetch ms, same node / other node | fragments from the other node | remote fetch share | "
               "all fetches share | wait+publish share | lag mean / max |\n"
-              "|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [f"| {r['setup']} | {r['workers']} | {r['sps']:,.0f} | {r['own_cores']:.2f} / {r['other_cores']:.2f} | "
+             f"{fmt(r['sps_per_core'], ',.0f')} | "
              f"{r['learner_share']:.2f} | {fmt(r['perf/fragment_mb'], '.1f')} | "
              f"{fmt(r['perf/fetch_ms_local'], '.1f')} / {fmt(r['perf/fetch_ms_remote'], '.1f')} | "
              f"{fmt(100 * r['perf/remote_fragment_fraction'], '.0f')}% | "
@@ -246,7 +264,7 @@ def main(argv=None) -> None:
         *([f"- conditions: {args.note}"] if args.note else []),
         f"- config: quickstart (DeepSets 64, N = 8, 16 swarms x 8 drones per worker, T = 128, batch 2048, "
         f"2 epochs), {args.seconds:.0f} s of training per row, {args.repeats} repeat(s) interleaved, figures after "
-        f"a 30% warm-up; cores used = mean busy cores of this run's processes / of all other processes (/proc); one node = a local "
+        f"a 30% warm-up; cores used = mean busy cores of this run's processes / of all other processes over the same steady window (/proc); one node = a local "
         f"Ray with max(actors) + 1 logical CPUs; two nodes = launchers.local_cluster (2 Ray nodes x "
         f"{args.cpus_per_node:g} logical CPUs, own object stores, loopback) + launchers.ray_cluster submit",
         "- fetch = the learner's ray.get of a ready fragment (copy between object stores when made on the other "

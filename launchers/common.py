@@ -1,10 +1,12 @@
 """What the launchers share: the config arguments (``--config`` + ``key=value``), loading and validating
-them, and the summary printed at the end of a run."""
+them, the summary printed at the end of a run, SIGTERM as Ctrl-C, and Ray's token authentication."""
 from __future__ import annotations
 
 import argparse
+import os
 import signal
-from typing import List, Optional
+from pathlib import Path
+from typing import List, MutableMapping, Optional
 
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,3 +44,15 @@ def _interrupt(signum, frame):
 def stop_on_sigterm() -> None:
     """SIGTERM (a scheduler, `kill`, `ray job stop`) stops like Ctrl-C: a final checkpoint, then a clean exit."""
     signal.signal(signal.SIGTERM, _interrupt)
+
+
+def token_available() -> bool:
+    """Whether a Ray auth token can be found where Ray looks for one."""
+    return bool(os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+                or (Path.home() / ".ray" / "auth_token").exists())
+
+
+def enable_token_auth_if_available(env: MutableMapping[str, str]) -> None:
+    """RAY_AUTH_MODE=token when a token exists and the mode is not set (what ``ray start`` does)."""
+    if "RAY_AUTH_MODE" not in env and token_available():
+        env["RAY_AUTH_MODE"] = "token"

@@ -33,6 +33,8 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from launchers.common import enable_token_auth_if_available
+
 LOOPBACK = "127.0.0.1"
 
 
@@ -40,18 +42,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind((LOOPBACK, 0))
         return s.getsockname()[1]
-
-
-def token_available() -> bool:
-    """Whether a Ray auth token can be found where Ray looks for one."""
-    return bool(os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
-                or (Path.home() / ".ray" / "auth_token").exists())
-
-
-def enable_token_auth_if_available(env: Dict[str, str]) -> None:
-    """RAY_AUTH_MODE=token when a token exists and the mode is not set (what ``ray start`` does)."""
-    if "RAY_AUTH_MODE" not in env and token_available():
-        env["RAY_AUTH_MODE"] = "token"
 
 
 # ------------------------------------------------------------------------------------------- the keeper

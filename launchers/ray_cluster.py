@@ -36,8 +36,8 @@ from typing import Any, Dict, List, Optional, Tuple
 
 os.environ.setdefault("WANDB_SILENT", "true")
 
-from launchers.common import add_config_arguments, load_cli_config, print_result, stop_on_sigterm  # noqa: E402
-from launchers.local_cluster import enable_token_auth_if_available  # noqa: E402
+from launchers.common import (add_config_arguments, enable_token_auth_if_available, load_cli_config,  # noqa: E402
+                              print_result, stop_on_sigterm)
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 CONFIG_ENV = "SWARM_APPO_CONFIG"  # the resolved config (YAML) travels to the cluster in this variable

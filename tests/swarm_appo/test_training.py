@@ -227,6 +227,9 @@ def test_ray_run_with_two_actors_writes_run_dir(tmp_path, local_ray):
     assert all({"lag/min", "lag/mean", "lag/max", "losses/policy_loss", "perf/worker_restarts"} <= set(r)
                for r in records)
     assert {"eval/dist", "eval_random/dist", "eval/dist_ratio_to_random"} <= set(final)
+    # one node: every fragment is fetched from the learner's own object store
+    assert all(r["perf/remote_fragment_fraction"] == 0 and r["perf/fragment_mb"] > 0 for r in records)
+    assert not (res.run_dir / "cluster.json").exists(), "cluster.json is written on a cluster only"
     # lag is measured per step and never negative; steps beyond algo.max_policy_lag (2 here) are masked
     assert all(0 <= r["lag/min"] <= r["lag/mean"] <= r["lag/max"] for r in records)
     for r in records:
