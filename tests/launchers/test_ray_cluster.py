@@ -85,6 +85,16 @@ def test_example_cluster_yaml_is_a_valid_ray_cluster_config():
         validate_config(prepare_config(config))
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _restore_environment():
+    """The launcher's in-process entry points set Ray's auth variables in os.environ (as its CLI should);
+    later tests in this pytest process start their own local Ray and must not inherit them."""
+    saved = dict(os.environ)
+    yield
+    os.environ.clear()
+    os.environ.update(saved)
+
+
 # --------------------------------------------------------------------------- a real two-node cluster
 @pytest.fixture(scope="module")
 def cluster():
