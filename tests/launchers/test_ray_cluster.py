@@ -115,6 +115,7 @@ def cli(cluster, *args, timeout=600):
     return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
 
 
+@pytest.mark.cluster
 def test_submit_spreads_rollout_actors_over_both_nodes(cluster, run_root):
     done = cli(cluster, "submit", "--follow", "--log-every-s", "5", *TINY, "runner.num_workers=0",
                "runner.total_agent_steps=960", f"runner.run_dir={run_root}", "runner.name=two_nodes")
@@ -141,6 +142,7 @@ def test_submit_spreads_rollout_actors_over_both_nodes(cluster, run_root):
     assert any(r.get("perf/remote_fragment_fraction", 0) > 0 for r in records)
 
 
+@pytest.mark.cluster
 def test_stop_ends_a_run_with_a_final_checkpoint(cluster, run_root):
     done = cli(cluster, "submit", *TINY, "runner.total_agent_steps=1000000000", f"runner.run_dir={run_root}",
                "runner.name=stopped")
@@ -176,6 +178,7 @@ def _still_alive(pids, timeout_s: float = 20.0) -> list:
     return [p for p in pids if _alive(p)]
 
 
+@pytest.mark.cluster
 def test_stopping_the_cluster_ends_every_process_it_started(cluster, run_root):
     """Runs last in this file: the nodes' own processes, the keeper and every rollout actor are gone."""
     actors = [w["pid"] for f in run_root.glob("*/cluster.json") for w in json.loads(f.read_text())["rollout_workers"]]
