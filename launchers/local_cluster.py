@@ -12,11 +12,13 @@ copied to the other like on a real cluster) at 127.0.0.1. A keeper process start
 when it ends (``LocalCluster.stop``, Ctrl-C, or its parent closing the pipe): other Ray instances on the
 machine are never touched (no ``ray stop``). Ports are picked free, so it runs next to other clusters.
 
-Three settings make a loopback cluster work: each node unpacks a job's working directory into its own
+Four settings make a loopback cluster work: each node unpacks a job's working directory into its own
 folder, as separate machines would (sharing one, a node's agent replaces the copy another node's processes
 run from); ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` stops Ray from replacing 127.0.0.1 by the machine's
-network address when a process joins; and token authentication is switched on like ``ray start`` does when
-a token exists (``~/.ray/auth_token``), so clients authenticate as on a real cluster.
+network address when a process joins; the nodes' temp dir is ``$RAY_TMPDIR/ray``, where the job supervisor
+finds the head's address for a job's driver (elsewhere it would pick any Ray instance running on the
+machine); and token authentication is switched on like ``ray start`` does when a token exists
+(``~/.ray/auth_token``), so clients authenticate as on a real cluster.
 """
 from __future__ import annotations
 
@@ -44,17 +46,26 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def ray_temp_dir(keeper_dir: str) -> str:
+    """The nodes' Ray temp dir (sessions, logs, the current-cluster file) inside the keeper's folder."""
+    return os.path.join(keeper_dir, "ray")
+
+
 # ------------------------------------------------------------------------------------------- the keeper
 def serve(nodes: int, cpus_per_node: float, object_store_mb: int, temp_dir: str, info_file: str) -> None:
     """Start the nodes, write their addresses to ``info_file``, block until stdin closes or a signal."""
     os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # see the module docstring
-    os.environ["RAY_TMPDIR"] = temp_dir  # Ray's "current cluster" file goes here, not to /tmp/ray
-    os.makedirs(os.path.join(temp_dir, "ray"), exist_ok=True)
+    # The "current cluster" file: the keeper writes it to $RAY_TMPDIR/ray, and a job supervisor looks for it in
+    # its node's temp dir to find the GCS for the job's driver: the two must be the same folder. Without the
+    # file the supervisor takes any GCS it sees in `ps`, another Ray instance's when one runs on the machine.
+    os.environ["RAY_TMPDIR"] = temp_dir
+    node_temp_dir = ray_temp_dir(temp_dir)
+    os.makedirs(node_temp_dir, exist_ok=True)
     from ray.cluster_utils import Cluster  # after the environment is set: Ray reads it at import
 
     dashboard_port = free_port()
     common = dict(node_ip_address=LOOPBACK, num_cpus=cpus_per_node, object_store_memory=object_store_mb * 2**20,
-                  temp_dir=temp_dir, metrics_export_port=free_port(), runtime_env_agent_port=free_port())
+                  temp_dir=node_temp_dir, metrics_export_port=free_port(), runtime_env_agent_port=free_port())
     # The nodes share one session directory; each gets its own runtime-env folder (where the job's working
     # directory is unpacked), as on separate machines: otherwise one node's agent replaces the copy that the
     # other node's processes are running from.

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from launchers.local_cluster import LocalCluster
+from launchers.local_cluster import LocalCluster, ray_temp_dir
 from launchers.ray_cluster import cluster_run_root, entrypoint_options, main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -104,6 +104,17 @@ def cluster():
 
 
 @pytest.fixture(scope="module")
+def other_ray():
+    """Another Ray instance on the machine while jobs are submitted (as in a full test run, where this pytest
+    process has its own local Ray): a job's driver must still join the cluster it was submitted to."""
+    import ray
+    if not ray.is_initialized():
+        ray.init(num_cpus=1, _node_ip_address="127.0.0.1", include_dashboard=False, configure_logging=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
 def run_root(tmp_path_factory):
     return tmp_path_factory.mktemp("cluster_runs")
 
@@ -116,7 +127,18 @@ def cli(cluster, *args, timeout=600):
 
 
 @pytest.mark.cluster
-def test_submit_spreads_rollout_actors_over_both_nodes(cluster, run_root):
+def test_job_supervisors_find_this_clusters_address(cluster):
+    """Ray's job supervisor gives a job's driver the GCS named in its node's temp dir ("current cluster"
+    file); without that file it takes any GCS found in `ps`, another instance's when one runs here."""
+    from ray._common.utils import get_ray_address_file
+    node_temp_dir = ray_temp_dir(cluster.temp_dir)
+    assert (Path(node_temp_dir) / "session_latest").is_dir()  # the nodes' temp dir (where supervisors look)
+    assert Path(get_ray_address_file(node_temp_dir)).read_text().strip() == cluster.gcs_address
+    assert cluster.gcs_address.startswith("127.0.0.1:")
+
+
+@pytest.mark.cluster
+def test_submit_spreads_rollout_actors_over_both_nodes(cluster, other_ray, run_root):
     done = cli(cluster, "submit", "--follow", "--log-every-s", "5", *TINY, "runner.num_workers=0",
                "runner.total_agent_steps=960", f"runner.run_dir={run_root}", "runner.name=two_nodes")
     logs = done.stdout + done.stderr
