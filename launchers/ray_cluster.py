@@ -27,6 +27,7 @@ import argparse
 import asyncio
 import logging
 import os
+import shlex
 import socket
 import sys
 import time
@@ -152,24 +153,13 @@ def cmd_submit(args) -> int:
     if args.learner_gpus not in ("auto", "0", "1"):
         print(f"--learner-gpus must be auto, 0 or 1, got {args.learner_gpus!r}", file=sys.stderr)
         return 2
-    extra_env = {}
-    for item in args.env:
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            print(f"--env expects NAME=VALUE, got {item!r}", file=sys.stderr)
-            return 2
-        extra_env[name] = value
-    working_dir = Path(args.working_dir).resolve()
-    if not (working_dir / "launchers" / "ray_cluster.py").exists():
-        print(f"--working-dir {working_dir} does not hold this project (launchers/ray_cluster.py)", file=sys.stderr)
+    extra_env = _shipping_options(args)
+    if extra_env is None:
         return 2
 
     import yaml
-    enable_token_auth_if_available(os.environ)
-    try:
-        client = _client(args.address)
-    except Exception as exc:  # connection refused, wrong address, authentication
-        print(f"cannot reach the Ray Jobs API at {args.address}: {exc}", file=sys.stderr)
+    client = _connect(args)
+    if client is None:
         return 1
     try:
         nodes = list_cluster_nodes(args.address)
@@ -185,24 +175,49 @@ def cmd_submit(args) -> int:
               f"minutes); runner.num_workers=0 fits the cluster", file=sys.stderr)
 
     name = cfg.runner.name or "run"
-    job_id = args.job_id or f"swarm_{name}_{time.strftime('%Y%m%d_%H%M%S')}_{uuid.uuid4().hex[:4]}"
-    runtime_env = {
-        "working_dir": str(working_dir),
-        "excludes": DEFAULT_EXCLUDES + list(args.exclude),
-        "env_vars": {CONFIG_ENV: yaml.safe_dump(config_to_dict(cfg), sort_keys=False),
-                     "RAY_JOB_STOP_WAIT_TIME_S": str(int(args.stop_timeout_s)),  # time for the final checkpoint
-                     "PYTHONUNBUFFERED": "1", "WANDB_SILENT": "true", **extra_env},
-    }
     entrypoint = f"{args.python} -m launchers.ray_cluster run --log-every-s {args.log_every_s:g}"
+    env_vars = {CONFIG_ENV: yaml.safe_dump(config_to_dict(cfg), sort_keys=False),
+                "RAY_JOB_STOP_WAIT_TIME_S": str(int(args.stop_timeout_s)),  # time for the final checkpoint
+                **extra_env}
+    summary = f"{len(nodes)} node(s), {cpus:g} CPUs" if nodes else "nodes unknown"
+    return _ship_and_submit(args, client, entrypoint, env_vars, options, f"swarm_{name}",
+                            {"swarm_appo.run_name": name}, f"{summary}; {where}")
+
+
+def _shipping_options(args) -> Optional[Dict[str, str]]:
+    """``--env NAME=VALUE`` as a dict, after checking ``--working-dir``; None (and a message) on a bad one."""
+    extra_env = {}
+    for item in args.env:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            print(f"--env expects NAME=VALUE, got {item!r}", file=sys.stderr)
+            return None
+        extra_env[name] = value
+    working_dir = Path(args.working_dir).resolve()
+    if not (working_dir / "launchers" / "ray_cluster.py").exists():
+        print(f"--working-dir {working_dir} does not hold this project (launchers/ray_cluster.py)", file=sys.stderr)
+        return None
+    return extra_env
+
+
+def _ship_and_submit(args, client, entrypoint: str, env_vars: Dict[str, str], options: Dict[str, Any],
+                     id_prefix: str, metadata: Dict[str, str], where: str) -> int:
+    """Submit ``entrypoint`` with the project directory as its working directory; print the job id and how
+    to follow it; with ``--follow`` stream its logs and return 0 only if it succeeded."""
+    job_id = args.job_id or f"{id_prefix}_{time.strftime('%Y%m%d_%H%M%S')}_{uuid.uuid4().hex[:4]}"
+    runtime_env = {
+        "working_dir": str(Path(args.working_dir).resolve()),
+        "excludes": DEFAULT_EXCLUDES + list(args.exclude),
+        "env_vars": {"PYTHONUNBUFFERED": "1", "WANDB_SILENT": "true", **env_vars},
+    }
     try:
         job_id = _submit_with_retry(client, entrypoint=entrypoint, submission_id=job_id, runtime_env=runtime_env,
-                                    metadata={"swarm_appo.run_name": name}, **options)
+                                    metadata=metadata, **options)
     except Exception as exc:
         print(f"submission to {args.address} failed: {exc}", file=sys.stderr)
         return 1
     print(job_id, flush=True)
-    summary = f"{len(nodes)} node(s), {cpus:g} CPUs" if nodes else "nodes unknown"
-    print(f"submitted to {args.address} ({summary}); {where}.\n"
+    print(f"submitted to {args.address} ({where}).\n"
           f"  logs:   python -m launchers.ray_cluster logs {job_id} --follow --address {args.address}\n"
           f"  status: python -m launchers.ray_cluster status {job_id} --address {args.address}\n"
           f"  stop:   python -m launchers.ray_cluster stop {job_id} --address {args.address}", file=sys.stderr)
@@ -211,6 +226,32 @@ def cmd_submit(args) -> int:
     status = _follow(client, job_id)
     print(f"job {job_id}: {status}", file=sys.stderr)
     return 0 if status == "SUCCEEDED" else 1
+
+
+def cmd_evaluate(args) -> int:
+    """Submit ``swarm_appo.evaluate`` as a job: its driver on the node that holds the checkpoints (the head,
+    or ``--node``), its actors on every CPU of the cluster. The evaluation's own arguments are checked here."""
+    from swarm_appo.evaluate import build_parser
+    eval_parser = build_parser()
+    eval_parser.prog = "launchers.ray_cluster evaluate"
+    eval_args = eval_parser.parse_args(args.eval_args)  # a bad argument exits here (2), before any contact
+    if eval_args.address is not None or eval_args.workers == 0:
+        eval_parser.error("--address and --workers 0 are set by the job itself (it evaluates on the cluster)")
+    extra_env = _shipping_options(args)
+    if extra_env is None:
+        return 2
+    client = _connect(args)
+    if client is None:
+        return 1
+    options: Dict[str, Any] = {}
+    where = "the evaluation's driver runs on the head node, its actors on every CPU of the cluster"
+    if args.node:
+        options["entrypoint_label_selector"] = {HEAD_LABEL: args.node}
+        where = f"the evaluation's driver runs on node {args.node}, its actors on every CPU of the cluster"
+    entrypoint = " ".join([args.python, "-m", "launchers.ray_cluster", "run-eval",
+                           *(shlex.quote(a) for a in args.eval_args)])
+    return _ship_and_submit(args, client, entrypoint, extra_env, options, "swarm_eval", {"swarm_appo.job": "eval"},
+                            where)
 
 
 def _connect(args):
@@ -328,6 +369,18 @@ def cmd_run(args) -> int:
     return 130 if result.interrupted else 0
 
 
+def cmd_run_eval(args) -> int:
+    """The evaluation job's entrypoint: ``swarm_appo.evaluate`` with its actors on the whole cluster.
+    Relative paths (and ``~``) are taken from the home directory, where training runs keep their run dirs."""
+    from swarm_appo import evaluate
+    project = str(Path.cwd())  # the job's copy of the project: later imports (here and in actors) find it
+    if project not in sys.path:
+        sys.path.insert(0, project)
+    os.chdir(Path.home())
+    argv = [os.path.expanduser(a) if a.startswith("~") else a for a in args.eval_args]
+    return evaluate.main([*argv, "--address", "auto", "--no-progress"])
+
+
 # =============================================================================================== CLI
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="swarm-cluster", description=__doc__,
@@ -344,13 +397,7 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     s.add_argument("--job-id", default=None, help="submission id (default: swarm_<run name>_<time>_<random>)")
     s.add_argument("--learner-gpus", default="auto",
                    help="GPU for the learner: auto (one when the cluster has a GPU), 0 or 1 (default: auto)")
-    s.add_argument("--working-dir", default=str(PROJECT_ROOT), help="project directory to ship (default: this one)")
-    s.add_argument("--exclude", action="append", default=[], metavar="PATTERN",
-                   help=f"also leave out these paths (gitignore syntax); always left out: {DEFAULT_EXCLUDES}")
-    s.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
-                   help="an environment variable for the run on the cluster, e.g. WANDB_API_KEY=... for "
-                        "wandb.mode=online (visible to whoever can read the cluster's job list)")
-    s.add_argument("--python", default="python", help="Python of the cluster's nodes (default: python)")
+    _shipping_arguments(s)
     s.add_argument("--log-every-s", type=float, default=30.0, help="seconds between progress lines in the logs")
     s.add_argument("--stop-timeout-s", type=float, default=60.0,
                    help="on `stop`, seconds the run has for its final checkpoint before it is killed")
@@ -368,12 +415,41 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     sp.add_argument("--no-wait", action="store_true", help="return without waiting for the job to end")
     sp.add_argument("--timeout-s", type=float, default=120.0, help="how long to wait for the job to end")
 
+    ev = with_address(sub.add_parser(
+        "evaluate", help="evaluate checkpoints on the cluster (the paper's tables); other arguments go to "
+                         "swarm_appo.evaluate, paths relative to the home directory of the driver's node",
+        usage="%(prog)s [--address URL] [--follow] [--node NODE_ID] ... --checkpoint PATH [PATH ...] "
+              "[swarm_appo.evaluate arguments]", allow_abbrev=False))
+    ev.add_argument("--follow", action="store_true", help="stream the logs until the job ends (exit 0 = succeeded)")
+    ev.add_argument("--node", default=None, metavar="NODE_ID",
+                    help="run the driver (which reads the checkpoints and writes the tables) on this node "
+                         "(default: the head; a run's cluster.json names its learner's node)")
+    ev.add_argument("--job-id", default=None, help="submission id (default: swarm_eval_<time>_<random>)")
+    _shipping_arguments(ev)
+
     r = sub.add_parser("run", help="(runs on the cluster) the job's entrypoint")
     r.add_argument("--log-every-s", type=float, default=30.0)
-    return p.parse_args(argv)
+    sub.add_parser("run-eval", help="(runs on the cluster) the evaluation job's entrypoint", add_help=False)
+    args, rest = p.parse_known_args(argv)
+    if args.command in ("evaluate", "run-eval"):  # the rest goes to swarm_appo.evaluate, in order
+        args.eval_args = rest
+    elif rest:
+        p.error(f"unrecognized arguments: {' '.join(rest)}")
+    return args
 
 
-COMMANDS = {"submit": cmd_submit, "status": cmd_status, "logs": cmd_logs, "stop": cmd_stop, "run": cmd_run}
+def _shipping_arguments(sp) -> None:
+    sp.add_argument("--working-dir", default=str(PROJECT_ROOT), help="project directory to ship (default: this one)")
+    sp.add_argument("--exclude", action="append", default=[], metavar="PATTERN",
+                    help=f"also leave out these paths (gitignore syntax); always left out: {DEFAULT_EXCLUDES}")
+    sp.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
+                    help="an environment variable for the job on the cluster, e.g. WANDB_API_KEY=... for "
+                         "wandb online (visible to whoever can read the cluster's job list)")
+    sp.add_argument("--python", default="python", help="Python of the cluster's nodes (default: python)")
+
+
+COMMANDS = {"submit": cmd_submit, "status": cmd_status, "logs": cmd_logs, "stop": cmd_stop, "run": cmd_run,
+            "evaluate": cmd_evaluate, "run-eval": cmd_run_eval}
 
 
 def main(argv: Optional[List[str]] = None) -> int:

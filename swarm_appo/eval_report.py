@@ -6,6 +6,7 @@ Output folder::
     table1_scenarios.md / .csv   the paper's Table 1: per scenario (x N), per policy
     table2_scaling.md / .csv     the paper's Table 2 (only with several N): per N, scenarios pooled
     episodes.jsonl               one record per episode: policy, N, scenario, seed, every stat
+    placement.json               (Ray runs) actors, and tasks and episodes per Ray node
     trajectories/*.png           the first episode of every (policy, N, scenario)
     wandb/                       offline wandb run (``wandb sync`` uploads it)
 """
@@ -130,6 +131,19 @@ def write_report(out: Path, setup: EvalSetup, results, labels: Sequence[str]) ->
         report.files.append(png)
         report.images[png.stem] = (png, r.trajectory.title)
     return report
+
+
+def write_placement(out: Path, results, address, workers: int, ray_cpus: int) -> Path:
+    """``placement.json``: where the tasks of a Ray evaluation ran (tasks and episodes per node)."""
+    tasks: Dict[str, int] = {}
+    episodes: Dict[str, int] = {}
+    for r in results:
+        tasks[r.node_id] = tasks.get(r.node_id, 0) + 1
+        episodes[r.node_id] = episodes.get(r.node_id, 0) + len(r.episodes)
+    path = Path(out) / "placement.json"
+    path.write_text(json.dumps({"address": address, "workers": workers, "ray_cpus": ray_cpus,
+                                "tasks_per_node": tasks, "episodes_per_node": episodes}, indent=1))
+    return path
 
 
 def log_to_wandb(out: Path, report: Report, setup: EvalSetup, mode: str = "offline",

@@ -9,6 +9,7 @@ Two uses:
 
     python -m swarm_appo.evaluate --checkpoint runs/a [runs/b ...] [--scenarios all|name,name]
         [--episodes 50] [--num-agents 8|16,32,64,128] [--workers N] [--seed S] [--out DIR] [--stochastic]
+        [--address auto|<host>:<port>]    # the actors on a Ray cluster (launchers.ray_cluster evaluate)
 
 How episodes run: the episodes of one (policy, N, scenario) are cut into tasks of at most
 ``--episodes-per-task``; a task is one ``VecQuadEnv`` with one swarm per episode, stepped for the whole
@@ -214,6 +215,7 @@ class TaskResult:
     task: EvalTask
     episodes: List[Dict]  # stats, in episode order
     trajectory: Optional[Episode]
+    node_id: str = ""  # the Ray node that flew it ("" in this process)
 
 
 def task_seed(seed: int, chunk: int) -> int:
@@ -296,16 +298,22 @@ class EvalWorker:
     """A Ray actor (one core) that runs tasks."""
 
     def __init__(self):
+        import ray
         torch.set_num_threads(1)
+        self.node_id = ray.get_runtime_context().get_node_id()
 
     def run(self, task: EvalTask, factory, weights, label: str) -> TaskResult:
-        return run_task(task, factory, weights, label)
+        return dataclasses.replace(run_task(task, factory, weights, label), node_id=self.node_id)
 
 
-def run_tasks(tasks: Sequence[EvalTask], specs: Sequence[PolicySpec], workers: int,
-              progress: bool = False) -> List[TaskResult]:
-    """Results in task order. ``workers`` 0: in this process, one task after another; else Ray actors
-    (a local Ray bound to 127.0.0.1 is started if none is running, and shut down at the end)."""
+def run_tasks(tasks: Sequence[EvalTask], specs: Sequence[PolicySpec], workers: Optional[int],
+              progress: bool = False, address: Optional[str] = None,
+              placement: Optional[Dict] = None) -> List[TaskResult]:
+    """Results in task order. ``workers`` 0: in this process, one task after another; else Ray actors, one
+    core each: on a local Ray bound to 127.0.0.1 (started if none is running, shut down at the end), or, with
+    ``address`` ("auto" or "<host>:<port>"), on the Ray cluster there, spread over its nodes. ``workers``
+    None: one actor per CPU (of this machine, or of the whole cluster). ``placement``, when given, receives
+    the number of actors started ("workers") and the Ray CPUs there were ("ray_cpus")."""
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -313,13 +321,15 @@ def run_tasks(tasks: Sequence[EvalTask], specs: Sequence[PolicySpec], workers: i
     results: List[Optional[TaskResult]] = [None] * len(tasks)
     try:
         if workers == 0:
+            if address is not None:
+                raise ValueError("workers=0 runs in this process: it cannot use a Ray cluster (address)")
             for t in tasks:
                 spec = specs[t.policy]
                 results[t.index] = run_task(t, spec.factory, spec.weights, spec.label)
                 if bar is not None:
                     bar.update(t.num_episodes)
         else:
-            for r in _run_on_ray(tasks, specs, workers):
+            for r in _run_on_ray(tasks, specs, workers, address, placement if placement is not None else {}):
                 results[r.task.index] = r
                 if bar is not None:
                     bar.update(r.task.num_episodes)
@@ -329,22 +339,30 @@ def run_tasks(tasks: Sequence[EvalTask], specs: Sequence[PolicySpec], workers: i
     return results
 
 
-def _run_on_ray(tasks, specs, workers):
+def _run_on_ray(tasks, specs, workers, address, placement):
     import ray
     from ray.util import ActorPool
 
-    from swarm_appo.sampling import init_local_ray
+    from swarm_appo.sampling import init_local_ray, init_ray
 
     started = not ray.is_initialized()
-    init_local_ray(num_cpus=max(workers, os.cpu_count() or 1))
+    if address is None:
+        init_local_ray(num_cpus=max(workers or 0, os.cpu_count() or 1))
+    else:
+        init_ray(address)
     actors = []
     try:
         cpus = int(ray.cluster_resources().get("CPU", 0))
-        if workers > cpus:
+        if workers is None:
+            workers = max(cpus, 1)
+        elif workers > cpus:
             warnings.warn(f"{workers} workers asked, Ray has {cpus} CPUs: using {max(cpus, 1)}", RuntimeWarning)
             workers = max(cpus, 1)
+        placement.update(workers=workers, ray_cpus=cpus)
         weights = [ray.put(s.weights) if s.weights is not None else None for s in specs]
-        actors = [ray.remote(num_cpus=1, max_restarts=0)(EvalWorker).remote() for _ in range(workers)]
+        # SPREAD: on a cluster the actors go to all nodes, not first fill the driver's
+        actors = [ray.remote(num_cpus=1, max_restarts=0, scheduling_strategy="SPREAD")(EvalWorker).remote()
+                  for _ in range(workers)]
         pool = ActorPool(actors)
         biggest_first = sorted(tasks, key=lambda t: (-t.num_agents * t.num_episodes, t.index))
         submit = lambda a, t: a.run.remote(t, specs[t.policy].factory, weights[t.policy], specs[t.policy].label)  # noqa: E731
@@ -373,13 +391,9 @@ def _differing_env_keys(a: EnvConfig, b: EnvConfig) -> List[str]:
     return sorted(k for k in da if k not in ignored and da[k] != db.get(k))
 
 
-def main(argv=None) -> int:
-    """The paper's evaluation tables for one or more checkpoints (see the module docstring)."""
+def build_parser():
+    """The command line of ``main`` (``launchers.ray_cluster evaluate`` checks its arguments with it)."""
     import argparse
-    import time
-
-    from swarm_appo import eval_report
-    from swarm_appo.checkpoint import CheckpointCorruptError
 
     p = argparse.ArgumentParser(prog="swarm-eval", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -389,8 +403,13 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=50, help="episodes per scenario and swarm size (paper: 50)")
     p.add_argument("--num-agents", default=None,
                    help="swarm size N (default: as trained); several, e.g. 16,32,64,128, add the scaling table")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="Ray actors, one core each (default: all cores); 0 = in this process, no Ray")
+    p.add_argument("--workers", type=int, default=None,
+                   help="Ray actors, one core each (default: all cores, or all CPUs of the cluster with "
+                        "--address); 0 = in this process, no Ray")
+    p.add_argument("--address", default=None,
+                   help="run the actors on this Ray cluster ('auto' or <host>:<port> of its GCS), spread over "
+                        "its nodes, instead of a local Ray; `python -m launchers.ray_cluster evaluate` submits "
+                        "an evaluation to a cluster as a job")
     p.add_argument("--seed", type=int, default=None,
                    help="episode seed (default: the end-of-run evaluation's seed of the first checkpoint)")
     p.add_argument("--out", default=None, help="output folder (default: <run dir of the first checkpoint>/eval)")
@@ -402,9 +421,22 @@ def main(argv=None) -> int:
     p.add_argument("--wandb-mode", default="offline", choices=("offline", "online", "disabled"))
     p.add_argument("--wandb-project", default="swarm-appo")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv=None) -> int:
+    """The paper's evaluation tables for one or more checkpoints (see the module docstring)."""
+    import time
+
+    from swarm_appo import eval_report
+    from swarm_appo.checkpoint import CheckpointCorruptError
+
+    p = build_parser()
     args = p.parse_args(argv)
-    if args.workers < 0:
+    if args.workers is not None and args.workers < 0:
         p.error(f"--workers must be >= 0, got {args.workers}")
+    if args.workers == 0 and args.address is not None:
+        p.error("--workers 0 evaluates in this process; it cannot be combined with --address")
     if args.episodes < 1 or args.episodes_per_task < 1:
         p.error("--episodes and --episodes-per-task must be >= 1")
 
@@ -434,16 +466,20 @@ def main(argv=None) -> int:
         tasks = plan_tasks(specs, num_agents, scenarios, args.episodes, args.episodes_per_task, seed,
                            deterministic=not args.stochastic, pictures=not args.no_pictures)
         start = time.perf_counter()
-        results = run_tasks(tasks, specs, args.workers, progress=not args.no_progress)
+        placement: Dict = {}
+        results = run_tasks(tasks, specs, args.workers, progress=not args.no_progress, address=args.address,
+                            placement=placement)
         elapsed = time.perf_counter() - start
     finally:
         torch.set_num_threads(threads)
 
     setup = eval_report.EvalSetup(
         policies=[(s.label, s.source, s.step) for s in specs], num_agents=num_agents, scenarios=scenarios,
-        episodes=args.episodes, seed=seed, deterministic=not args.stochastic, workers=args.workers,
+        episodes=args.episodes, seed=seed, deterministic=not args.stochastic, workers=placement.get("workers", 0),
         wall_s=elapsed)
     report = eval_report.write_report(out, setup, results, [s.label for s in specs])
+    if placement:
+        report.files.append(eval_report.write_placement(out, results, address=args.address, **placement))
     print(report.text)
     eval_report.log_to_wandb(out, report, setup, mode=args.wandb_mode, project=args.wandb_project)
     print(f"written to {out}: {', '.join(sorted(str(p.relative_to(out)) for p in report.files))}")

@@ -48,6 +48,25 @@ def test_unreachable_address_is_reported(capsys):
     assert "cannot reach the Ray Jobs API at http://127.0.0.1:9" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--checkpoint", "runs/a", "--episodes", "many"], "--episodes: invalid int value"),
+    (["--episodes", "4"], "--checkpoint"),  # required
+    (["--checkpoint", "runs/a", "--workers", "0"], "set by the job itself"),
+    (["--checkpoint", "runs/a", "--episods", "4"], "unrecognized arguments: --episods"),
+])
+def test_evaluate_arguments_are_checked_before_contacting_the_cluster(args, message, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["evaluate", "--address", "http://127.0.0.1:9", *args])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "cannot reach" not in err, err
+
+
+def test_evaluate_reports_an_unreachable_address(capsys):
+    assert main(["evaluate", "--address", "http://127.0.0.1:9", "--checkpoint", "runs/a"]) == 1
+    assert "cannot reach the Ray Jobs API at http://127.0.0.1:9" in capsys.readouterr().err
+
+
 def test_learner_goes_to_a_gpu_node_when_the_cluster_has_one():
     head = {"node_id": "h", "head": True, "cpus": 4, "gpus": 0}
     gpu_node = {"node_id": "g", "head": False, "cpus": 8, "gpus": 1}
@@ -103,15 +122,27 @@ def cluster():
         yield c
 
 
+OTHER_RAY = """
+import sys, ray
+ray.init(num_cpus=1, _node_ip_address="127.0.0.1", include_dashboard=False)
+print("ready", flush=True)
+sys.stdin.read()  # until the test closes the pipe
+ray.shutdown()
+"""
+
+
 @pytest.fixture(scope="module")
 def other_ray():
-    """Another Ray instance on the machine while jobs are submitted (as in a full test run, where this pytest
-    process has its own local Ray): a job's driver must still join the cluster it was submitted to."""
-    import ray
-    if not ray.is_initialized():
-        ray.init(num_cpus=1, _node_ip_address="127.0.0.1", include_dashboard=False, configure_logging=False)
-    yield
-    ray.shutdown()
+    """Another Ray instance on the machine while jobs are submitted (as in a full test run, where earlier tests
+    start local Rays): a job's driver must still join the cluster it was submitted to. In its own process,
+    so that it shares no Ray state with this one; it ends its Ray when its stdin closes."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    proc = subprocess.Popen([sys.executable, "-c", OTHER_RAY], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True, env=env)
+    assert proc.stdout.readline().strip() == "ready"
+    yield proc
+    proc.stdin.close()
+    proc.wait(60)
 
 
 @pytest.fixture(scope="module")
@@ -162,6 +193,32 @@ def test_submit_spreads_rollout_actors_over_both_nodes(cluster, other_ray, run_r
     assert sum(placement["agent_steps_per_node"].values()) == records[-1]["global_step"]
     assert placement["learner"]["node_id"] in node_ids and placement["learner"]["device"] == "cpu"
     assert any(r.get("perf/remote_fragment_fraction", 0) > 0 for r in records)
+
+
+@pytest.mark.cluster
+def test_evaluate_spreads_episodes_over_both_nodes_and_matches_a_local_evaluation(cluster, run_root, tmp_path):
+    """`evaluate` submits swarm_appo.evaluate as a job: a relative checkpoint path is taken from the home
+    directory of the driver's node (HOME is the run root here), the actors cover both nodes, and the table
+    is the one an evaluation in this process gives (episodes are seeded by task, not by actor)."""
+    args = ["--scenarios", "static_same_goal,swap_goals", "--episodes", "4", "--episodes-per-task", "1",
+            "--wandb-mode", "disabled"]
+    home = ["--env", f"HOME={run_root}"]
+    token = Path.home() / ".ray" / "auth_token"
+    if token.exists():  # Ray finds its token under HOME: point it to the real one
+        home += ["--env", f"RAY_AUTH_TOKEN_PATH={token}"]
+    done = cli(cluster, "evaluate", "--follow", *home, "--checkpoint", "two_nodes", *args)
+    assert done.returncode == 0, cli(cluster, "logs", done.stdout.splitlines()[0]).stdout[-4000:]
+    out = run_root / "two_nodes" / "eval"
+    placement = json.loads((out / "placement.json").read_text())
+    assert placement["workers"] == 4 and placement["ray_cpus"] == 4  # every CPU of the cluster
+    assert set(placement["tasks_per_node"]) == set(cluster.node_ids)  # 8 one-episode tasks, on both nodes
+    assert sum(placement["episodes_per_node"].values()) == 2 * 4
+    assert list((out / "trajectories").glob("*.png"))
+
+    from swarm_appo import evaluate
+    assert evaluate.main(["--checkpoint", str(run_root / "two_nodes"), *args, "--workers", "0",
+                          "--out", str(tmp_path), "--no-progress"]) == 0
+    assert (out / "table1_scenarios.csv").read_text() == (tmp_path / "table1_scenarios.csv").read_text()
 
 
 @pytest.mark.cluster
