@@ -257,7 +257,7 @@ def main(argv=None) -> None:
     section = "\n".join([
         f"## cluster_throughput — {datetime.datetime.now().isoformat(timespec='seconds')}",
         "",
-        f"- command: `nice -n 15 python -m benchmarks.cluster_throughput "
+        f"- command: `{f'nice -n {os.nice(0)} ' if os.nice(0) else ''}python -m benchmarks.cluster_throughput "
         f"{' '.join(argv if argv is not None else sys.argv[1:])}`",
         f"- commit: {commit(['swarm_appo', 'launchers', 'benchmarks/cluster_throughput.py'])}",
         f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}",
