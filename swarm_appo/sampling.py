@@ -237,15 +237,36 @@ def _init_keeping_sigterm(**init_kwargs) -> None:
         signal.signal(signal.SIGTERM, sigterm)
 
 
-def init_local_ray(num_cpus: Optional[int] = None) -> None:
-    """Start (or reuse) a local Ray bound to loopback."""
+LOOPBACK = "127.0.0.1"
+_CLUSTER_SWITCH = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+def init_local_ray(num_cpus: Optional[int] = None, **init_kwargs) -> None:
+    """Start (or reuse) a one-machine Ray whose nodes' address is 127.0.0.1.
+
+    ``ray.init(_node_ip_address="127.0.0.1")`` alone is not enough on Linux: Ray replaces a loopback address
+    by the machine's network address (meant for clusters, where other machines must reach the node) unless
+    multi-node support is switched off with RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0. That switch is set for the
+    processes this Ray starts and, for the time of ``ray.init``, in this one (Ray reads it at import)."""
     if ray.is_initialized():
         return
     # Ray starts its workers at niceness 15, below the learner (the driver): on a busy laptop the rollout
     # actors would then starve while the learner waits for them. Sampling is half of the job: same priority.
     os.environ.setdefault("RAY_worker_niceness", "0")
-    _init_keeping_sigterm(num_cpus=num_cpus or os.cpu_count(), _node_ip_address="127.0.0.1",
-                          include_dashboard=False, log_to_driver=True, configure_logging=False)
+    from ray._private import ray_constants
+    saved_env, saved_flag = os.environ.get(_CLUSTER_SWITCH), ray_constants.ENABLE_RAY_CLUSTER
+    os.environ[_CLUSTER_SWITCH] = "0"
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        _init_keeping_sigterm(**{**dict(num_cpus=num_cpus or os.cpu_count(), _node_ip_address=LOOPBACK,
+                                        include_dashboard=False, log_to_driver=True, configure_logging=False),
+                                 **init_kwargs})
+    finally:  # a later join of a real cluster in this process sees Ray's defaults again
+        ray_constants.ENABLE_RAY_CLUSTER = saved_flag
+        if saved_env is None:
+            os.environ.pop(_CLUSTER_SWITCH, None)
+        else:
+            os.environ[_CLUSTER_SWITCH] = saved_env
 
 
 def init_ray(address: Optional[str]) -> None:

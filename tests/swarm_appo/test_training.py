@@ -19,7 +19,7 @@ from swarm_appo.config import load_config
 from swarm_appo.learner import Learner, stack_fragments
 from swarm_appo.model import model_factory
 from swarm_appo.rollout import RolloutWorker
-from swarm_appo.sampling import RaySampler
+from swarm_appo.sampling import RaySampler, init_local_ray
 from swarm_appo.trainer import train
 from swarm_appo.vtrace import vtrace
 
@@ -209,9 +209,18 @@ def test_new_run_never_overwrites_an_old_run(tmp_path):
 # --------------------------------------------------------------------------- Ray
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(num_cpus=2, _node_ip_address="127.0.0.1", include_dashboard=False, configure_logging=False)
+    init_local_ray(num_cpus=2)
     yield
     ray.shutdown()
+
+
+def test_local_ray_is_on_loopback_only(local_ray):
+    """The node's address, the GCS the driver talks to, and every worker's node are 127.0.0.1 (Ray would
+    put the machine's network address there for a node_ip_address of 127.0.0.1)."""
+    context = ray.get_runtime_context()
+    assert context.gcs_address.startswith("127.0.0.1:")
+    assert {n["NodeManagerAddress"] for n in ray.nodes()} == {"127.0.0.1"}
+    assert ray.get(ray.remote(lambda: ray.util.get_node_ip_address()).remote()) == "127.0.0.1"
 
 
 def test_ray_run_with_two_actors_writes_run_dir(tmp_path, local_ray):
