@@ -246,6 +246,13 @@ def cmd_evaluate(args) -> int:
     options: Dict[str, Any] = {}
     where = "the evaluation's driver runs on the head node, its actors on every CPU of the cluster"
     if args.node:
+        try:
+            node_ids = [n["node_id"] for n in list_cluster_nodes(args.address)]
+        except Exception:  # no state API: Ray reports an unknown node by leaving the job pending
+            node_ids = [args.node]
+        if args.node not in node_ids:
+            print(f"--node {args.node} is not an alive node of the cluster; its nodes: {node_ids}", file=sys.stderr)
+            return 2
         options["entrypoint_label_selector"] = {HEAD_LABEL: args.node}
         where = f"the evaluation's driver runs on node {args.node}, its actors on every CPU of the cluster"
     entrypoint = " ".join([args.python, "-m", "launchers.ray_cluster", "run-eval",

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -467,8 +468,12 @@ def main(argv=None) -> int:
                            deterministic=not args.stochastic, pictures=not args.no_pictures)
         start = time.perf_counter()
         placement: Dict = {}
-        results = run_tasks(tasks, specs, args.workers, progress=not args.no_progress, address=args.address,
-                            placement=placement)
+        try:
+            results = run_tasks(tasks, specs, args.workers, progress=not args.no_progress, address=args.address,
+                                placement=placement)
+        except ConnectionError as exc:  # --address: no cluster there
+            print(f"swarm-eval: cannot join the Ray cluster at --address {args.address}: {exc}", file=sys.stderr)
+            return 1
         elapsed = time.perf_counter() - start
     finally:
         torch.set_num_threads(threads)

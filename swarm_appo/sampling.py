@@ -269,9 +269,24 @@ def init_local_ray(num_cpus: Optional[int] = None, **init_kwargs) -> None:
             os.environ[_CLUSTER_SWITCH] = saved_env
 
 
+def check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Raise ConnectionError at once when nothing listens at a "<host>:<port>" Ray address (Ray itself
+    retries for minutes before it gives up). "auto" and client ("ray://") addresses are left to Ray."""
+    if address == "auto" or "://" in address:
+        return
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ConnectionError(f"a Ray address is 'auto' or '<host>:<port>' (the head's GCS), got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ConnectionError(f"no Ray cluster answers at {address} ({exc})") from None
+
+
 def init_ray(address: Optional[str]) -> None:
     """``runner.ray_address``: None starts (or reuses) a local Ray; "auto" or "<host>:<port>" joins a cluster."""
     if address is None:
         init_local_ray()
     elif not ray.is_initialized():
+        check_reachable(address)
         _init_keeping_sigterm(address=address, log_to_driver=True, configure_logging=False)

@@ -226,6 +226,13 @@ def test_evaluate_spreads_episodes_over_both_nodes_and_matches_a_local_evaluatio
 
 
 @pytest.mark.cluster
+def test_evaluate_on_an_unknown_node_lists_the_clusters_nodes(cluster):
+    done = cli(cluster, "evaluate", "--node", "0123abcd", "--checkpoint", "runs/a")
+    assert done.returncode == 2
+    assert "--node 0123abcd is not an alive node" in done.stderr and all(n in done.stderr for n in cluster.node_ids)
+
+
+@pytest.mark.cluster
 def test_stop_ends_a_run_with_a_final_checkpoint(cluster, run_root):
     done = cli(cluster, "submit", *TINY, "runner.total_agent_steps=1000000000", f"runner.run_dir={run_root}",
                "runner.name=stopped")

@@ -177,6 +177,19 @@ def test_bad_requests_get_clear_errors(tmp_path, capsys):
     assert "missing" in capsys.readouterr().err
 
 
+def test_an_address_without_a_ray_cluster_fails_at_once_with_a_clear_error(tmp_path, capsys):
+    run = tiny_checkpoint(tmp_path, "q")
+    # port 9 (discard): nothing listens; Ray itself would retry for minutes
+    assert cli("--checkpoint", run, "--scenarios", "static_same_goal", "--address", "127.0.0.1:9",
+               "--out", tmp_path / "out", "--no-progress") == 1
+    err = capsys.readouterr().err
+    assert "cannot join the Ray cluster at --address 127.0.0.1:9" in err and "no Ray cluster answers" in err
+    assert not (tmp_path / "out" / "table1_scenarios.csv").exists()
+    with pytest.raises(SystemExit):
+        cli("--checkpoint", run, "--address", "auto", "--workers", 0)
+    assert "cannot be combined with --address" in capsys.readouterr().err
+
+
 def test_a_policy_meets_only_the_observation_layout_it_was_trained_on(tmp_path):
     spec, = evaluate.load_policy_specs([tiny_checkpoint(tmp_path, "q")])
     evaluate.check_layouts([spec], [1, 3, 20], ["static_same_goal"])  # any N: K slots padded and masked

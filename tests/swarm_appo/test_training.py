@@ -214,6 +214,21 @@ def local_ray():
     ray.shutdown()
 
 
+def test_cluster_addresses_are_checked_before_ray_is_asked():
+    import socket
+
+    from swarm_appo.sampling import check_reachable
+    with socket.socket() as server:  # something listening: accepted
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        check_reachable(f"127.0.0.1:{server.getsockname()[1]}")
+    with pytest.raises(ConnectionError, match="no Ray cluster answers at 127.0.0.1:9"):
+        check_reachable("127.0.0.1:9")
+    with pytest.raises(ConnectionError, match="'auto' or '<host>:<port>'"):
+        check_reachable("head-node")
+    check_reachable("auto")  # left to Ray
+
+
 def test_local_ray_is_on_loopback_only(local_ray):
     """The node's address, the GCS the driver talks to, and every worker's node are 127.0.0.1 (Ray would
     put the machine's network address there for a node_ip_address of 127.0.0.1)."""
