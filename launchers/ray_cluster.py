@@ -235,8 +235,9 @@ def cmd_evaluate(args) -> int:
     eval_parser = build_parser()
     eval_parser.prog = "launchers.ray_cluster evaluate"
     eval_args = eval_parser.parse_args(args.eval_args)  # a bad argument exits here (2), before any contact
-    if eval_args.address is not None or eval_args.workers == 0:
-        eval_parser.error("--address and --workers 0 are set by the job itself (it evaluates on the cluster)")
+    if eval_args.workers == 0:  # (--address is this launcher's: the job sets the evaluation's to "auto")
+        eval_parser.error("--workers 0 cannot be used: where the episodes run is set by the job itself "
+                          "(it spreads them over the cluster)")
     extra_env = _shipping_options(args)
     if extra_env is None:
         return 2
@@ -380,9 +381,7 @@ def cmd_run_eval(args) -> int:
     """The evaluation job's entrypoint: ``swarm_appo.evaluate`` with its actors on the whole cluster.
     Relative paths (and ``~``) are taken from the home directory, where training runs keep their run dirs."""
     from swarm_appo import evaluate
-    project = str(Path.cwd())  # the job's copy of the project: later imports (here and in actors) find it
-    if project not in sys.path:
-        sys.path.insert(0, project)
+    # `python -m` put the job's copy of the project on sys.path as an absolute path: imports survive the chdir
     os.chdir(Path.home())
     argv = [os.path.expanduser(a) if a.startswith("~") else a for a in args.eval_args]
     return evaluate.main([*argv, "--address", "auto", "--no-progress"])

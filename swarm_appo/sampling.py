@@ -241,7 +241,7 @@ LOOPBACK = "127.0.0.1"
 _CLUSTER_SWITCH = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 
 
-def init_local_ray(num_cpus: Optional[int] = None, **init_kwargs) -> None:
+def init_local_ray(num_cpus: Optional[int] = None) -> None:
     """Start (or reuse) a one-machine Ray whose nodes' address is 127.0.0.1.
 
     ``ray.init(_node_ip_address="127.0.0.1")`` alone is not enough on Linux: Ray replaces a loopback address
@@ -258,9 +258,8 @@ def init_local_ray(num_cpus: Optional[int] = None, **init_kwargs) -> None:
     os.environ[_CLUSTER_SWITCH] = "0"
     ray_constants.ENABLE_RAY_CLUSTER = False
     try:
-        _init_keeping_sigterm(**{**dict(num_cpus=num_cpus or os.cpu_count(), _node_ip_address=LOOPBACK,
-                                        include_dashboard=False, log_to_driver=True, configure_logging=False),
-                                 **init_kwargs})
+        _init_keeping_sigterm(num_cpus=num_cpus or os.cpu_count(), _node_ip_address=LOOPBACK,
+                              include_dashboard=False, log_to_driver=True, configure_logging=False)
     finally:  # a later join of a real cluster in this process sees Ray's defaults again
         ray_constants.ENABLE_RAY_CLUSTER = saved_flag
         if saved_env is None:
