@@ -44,7 +44,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"config error: {exc}", file=sys.stderr)
         return 2
     stop_on_sigterm()
-    result = train(cfg, resume_dir=args.resume, progress=not args.no_progress)
+    try:
+        result = train(cfg, resume_dir=args.resume, progress=not args.no_progress)
+    except ConnectionError as exc:  # runner.ray_address: no cluster there
+        print(f"cannot join the Ray cluster of runner.ray_address: {exc}", file=sys.stderr)
+        return 1
     print_result(result)
     return 130 if result.interrupted else 0
 

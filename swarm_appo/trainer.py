@@ -32,7 +32,7 @@ from swarm_appo.evaluate import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
 from swarm_appo.model import model_factory
-from swarm_appo.sampling import RaySampler, SerialSampler, fragment_nbytes, init_ray
+from swarm_appo.sampling import RaySampler, SerialSampler, check_reachable, fragment_nbytes, init_ray
 
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = 1
@@ -165,6 +165,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     assert cfg is not None, "train() needs a config or a run directory to resume"
     import encoders
     validate(cfg, known_encoders=encoders.ENCODERS)
+    if cfg.runner.ray_address is not None and not cfg.runner.serial:
+        check_reachable(cfg.runner.ray_address)  # before a run dir exists: a typo leaves nothing behind
     if resume_dir is None:
         run_dir = fresh_run_dir(Path(cfg.runner.run_dir), cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -25,6 +25,13 @@ def test_unknown_key_names_the_key(tmp_path, capsys):
     assert not (tmp_path / "cli").exists(), "a config error must not create a run directory"
 
 
+def test_a_ray_address_without_a_cluster_fails_before_the_run_directory(tmp_path, capsys):
+    assert main(tiny_args(tmp_path) + ["runner.serial=false", "runner.ray_address=127.0.0.1:9"]) == 1
+    err = capsys.readouterr().err
+    assert "cannot join the Ray cluster of runner.ray_address" in err and "127.0.0.1:9" in err
+    assert not (tmp_path / "cli").exists(), "nothing to record: no run directory"
+
+
 def test_unknown_encoder_lists_the_valid_ones(tmp_path, capsys):
     assert main(tiny_args(tmp_path) + ["model.encoder=transformer"]) == 2
     err = capsys.readouterr().err
