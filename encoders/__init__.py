@@ -1,9 +1,13 @@
-"""Neighbour encoders (SE(3)-Graphormer, SE(3)-K-Attention, K-Attention, DeepSets, MLP) and the actor-critic.
+"""Neighbour encoders (Graphormer, K-Attention, DeepSets, MLP), each with a symmetry (none, se3, yaw), and the
+actor-critic.
 
     enc = make_encoder("se3_graphormer", layout, multiplicity=16)   # obs [B, D] -> [B, enc.out_dim]
+    enc = make_encoder("deepsets", layout, symmetry="yaw", size="small")
     model = ActorCritic(layout, encoder="deepsets")
 """
 from .actor_critic import ActorCritic
-from .registry import ENCODER_CLASSES, ENCODERS, encoder_options, make_encoder
+from .frames import SYMMETRIES
+from .registry import ALIASES, ARCHITECTURES, ENCODERS, SIZES, encoder_options, make_encoder, resolve
 
-__all__ = ["ActorCritic", "ENCODERS", "ENCODER_CLASSES", "encoder_options", "make_encoder"]
+__all__ = ["ActorCritic", "ALIASES", "ARCHITECTURES", "ENCODERS", "SIZES", "SYMMETRIES", "encoder_options",
+           "make_encoder", "resolve"]

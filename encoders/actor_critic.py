@@ -19,7 +19,9 @@ from quad_env.obs_layout import ObsLayout
 from .body_frame import BodyFrameInput
 from .common import mlp, xavier_init_
 from .obs_norm import FieldScaleNorm
-from .registry import make_encoder
+from .registry import make_encoder, resolve
+
+HEAD_HIDDEN = {"paper": 256, "small": 64}  # head width per model.size preset
 
 HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -36,28 +38,42 @@ class ActorCritic(nn.Module):
     Args:
         layout: observation layout.
         encoder: registered encoder name (see ``encoders.ENCODERS``).
-        encoder_kwargs: options passed to the encoder (e.g. ``{"multiplicity": 16}``).
+        encoder_kwargs: options passed to the encoder, over its size preset (e.g. ``{"multiplicity": 16}``).
+        symmetry: the encoder's symmetry group, "none" | "se3" | "yaw" (None: the encoder name's own).
+        size: size preset of the encoder and the heads, "paper" | "small".
         share_encoder: actor and critic use one encoder (the paper: separate weights, the default).
         action_dim: size of the action (4 rotor commands).
-        head_hidden: hidden width of the actor and critic heads (paper 256).
+        head_hidden: hidden width of the actor and critic heads; None = the size preset's (paper 256, small 64).
         head_activation: nonlinearity of the heads.
         init_log_std: initial value of the learned log standard deviation.
         normalize_obs: scale each observation field by its running RMS norm first (``FieldScaleNorm``,
             equivariance-preserving); its statistics change only through ``obs_norm.update``.
         init_action_mean: initial mean action (the bias of the actor's last layer), e.g. the hover command.
-        body_frame_obs: feed the network the observation in the drone's body frame (``BodyFrameInput``).
+        body_frame_obs: feed the network the observation in the drone's body frame (``BodyFrameInput``); only
+            with symmetry "none" (a symmetric encoder canonicalizes its inputs itself).
         init_actor_out_scale: multiplies the Xavier-uniform weights of the actor's last layer; small values
             (PPO practice: 0.01) start the policy at a near-constant mean action ``init_action_mean``.
     """
 
     def __init__(self, layout: ObsLayout, encoder: str = "deepsets", encoder_kwargs: Optional[dict] = None,
-                 share_encoder: bool = False, action_dim: int = 4, head_hidden: int = 256,
+                 share_encoder: bool = False, action_dim: int = 4, head_hidden: Optional[int] = None,
                  head_activation: str = "tanh", init_log_std: float = 0.0, normalize_obs: bool = False,
-                 init_action_mean: float = 0.0, init_actor_out_scale: float = 1.0, body_frame_obs: bool = False):
+                 init_action_mean: float = 0.0, init_actor_out_scale: float = 1.0, body_frame_obs: bool = False,
+                 symmetry: Optional[str] = None, size: str = "paper"):
         super().__init__()
         encoder_kwargs = dict(encoder_kwargs or {})
+        _, symmetry = resolve(encoder, symmetry)
+        if body_frame_obs and symmetry != "none":
+            raise ValueError(f"body_frame_obs=True rotates the inputs into the body frame, which symmetry "
+                             f"{symmetry!r} (encoder {encoder!r}) does itself: set body_frame_obs=False or "
+                             f"symmetry='none'")
+        if size not in HEAD_HIDDEN:
+            raise ValueError(f"unknown size preset {size!r}; valid: {list(HEAD_HIDDEN)}")
+        head_hidden = HEAD_HIDDEN[size] if head_hidden is None else head_hidden
         self.layout = layout
-        self.config = dict(encoder=encoder, encoder_kwargs=encoder_kwargs, share_encoder=share_encoder,
+        self.symmetry = symmetry
+        self.config = dict(encoder=encoder, encoder_kwargs=encoder_kwargs, symmetry=symmetry, size=size,
+                           share_encoder=share_encoder,
                            action_dim=action_dim, head_hidden=head_hidden, head_activation=head_activation,
                            init_log_std=init_log_std, normalize_obs=normalize_obs,
                            init_action_mean=init_action_mean, init_actor_out_scale=init_actor_out_scale,
@@ -66,8 +82,8 @@ class ActorCritic(nn.Module):
         self.action_dim = action_dim
         self.obs_norm = FieldScaleNorm(layout) if normalize_obs else None
         self.body_frame = BodyFrameInput(layout) if body_frame_obs else None
-        self.actor_encoder = make_encoder(encoder, layout, **encoder_kwargs)
-        self.critic_encoder = None if share_encoder else make_encoder(encoder, layout, **encoder_kwargs)
+        self.actor_encoder = make_encoder(encoder, layout, symmetry, size, **encoder_kwargs)
+        self.critic_encoder = None if share_encoder else make_encoder(encoder, layout, symmetry, size, **encoder_kwargs)
         out_dim = self.actor_encoder.out_dim
         self.actor_head = xavier_init_(mlp([out_dim, head_hidden, action_dim], head_activation, last_act=False))
         self.critic_head = xavier_init_(mlp([out_dim, head_hidden, 1], head_activation, last_act=False))

@@ -1,28 +1,38 @@
-"""Body-frame inputs: drone i's observation with every world-frame quantity expressed in its own frame.
+"""Observations re-expressed in a frame of drone i: every world-frame quantity rotated by F_i^T.
 
-A controller of body-fixed rotors needs, e.g., the velocity along its own axes: R_i^T v. A network fed
-world-frame vectors has to learn that product of inputs itself, which a small MLP learns slowly; this
-module computes it exactly. World vectors v become R_i^T v, neighbour rotations R_j become R_i^T R_j,
-and drone i's own rotation R_i is kept as it is (its last row is "up" in the body frame: gravity breaks
-the rotational symmetry, so no information is dropped). Body fields, scalars and the mask are unchanged.
+Two uses, one module:
 
-Meant for the world-frame encoders (``deepsets``, ``kattention``, ``mlp``); the SE(3) encoders
-canonicalize their neighbour inputs by R_i already.
+- ``FrameInput(layout, "se3", keep_own_rot=False)`` is the input side of group canonicalization (paper,
+  Lemma 1; ``encoders.symmetric``): world vectors v -> F_i^T v, rotations R -> F_i^T R (drone i's own
+  attitude included), with F_i = R_i (``se3``) or drone i's heading frame (``yaw``). The result is
+  invariant to the group.
+- ``BodyFrameInput(layout)`` (``model.body_frame_obs``, world-frame encoders only): the same with F_i = R_i,
+  but drone i's own rotation R_i is kept as it is (its last row is "up" in the body frame: gravity breaks the
+  rotational symmetry, so no information is dropped). A rotor command depends on body-frame quantities,
+  which a small world-frame MLP would otherwise have to learn as products of its inputs.
+
+Body fields, scalars and the mask are unchanged.
 """
 from __future__ import annotations
+
+from typing import Optional
 
 import torch
 from torch import nn
 
 from quad_env.obs_layout import ObsLayout
 
+from .frames import frame_of
 
-class BodyFrameInput(nn.Module):
-    """``forward(obs [B, D]) -> obs [B, D]`` in drone i's body frame (see the module docstring)."""
 
-    def __init__(self, layout: ObsLayout):
+class FrameInput(nn.Module):
+    """``forward(obs [B, D], F [B, 3, 3] = None) -> obs [B, D]`` expressed in frame F (default: the frame of
+    ``symmetry`` computed from drone i's own attitude)."""
+
+    def __init__(self, layout: ObsLayout, symmetry: str = "se3", keep_own_rot: bool = False):
         super().__init__()
         self.layout = layout
+        self.symmetry = symmetry
         rot = layout.field("rot")
         self.rot_slice = slice(rot.start, rot.stop)
         vec_idx, mat_idx = [], []
@@ -32,7 +42,7 @@ class BodyFrameInput(nn.Module):
         for off, f in blocks:
             if f.kind == "world_vector":
                 vec_idx += range(f.start + off, f.stop + off)
-            elif f.kind == "rotation" and not (f.group == "self" and f.name == "rot"):
+            elif f.kind == "rotation" and not (keep_own_rot and f.group == "self" and f.name == "rot"):
                 mat_idx += range(f.start + off, f.stop + off)
         self.register_buffer("vec_idx", torch.tensor(vec_idx, dtype=torch.long), persistent=False)
         self.register_buffer("mat_idx", torch.tensor(mat_idx, dtype=torch.long), persistent=False)
@@ -43,11 +53,20 @@ class BodyFrameInput(nn.Module):
             perm[c] = layout.dim + k
         self.register_buffer("perm", torch.tensor(perm, dtype=torch.long), persistent=False)
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def own_frame(self, obs: torch.Tensor) -> torch.Tensor:
+        """F_i [B, 3, 3] of every row, from drone i's attitude R_i (body -> world)."""
+        return frame_of(self.symmetry, obs[:, self.rot_slice].reshape(obs.shape[0], 3, 3))
+
+    def forward(self, obs: torch.Tensor, F: Optional[torch.Tensor] = None) -> torch.Tensor:
         B = obs.shape[0]
-        R = obs[:, self.rot_slice].reshape(B, 3, 3)  # [B, 3, 3] body -> world
+        F = self.own_frame(obs) if F is None else F  # [B, 3, 3]
         v = obs[:, self.vec_idx].reshape(B, -1, 3)  # [B, V, 3]
-        v_body = (v @ R).reshape(B, -1)  # rows v^T R = (R^T v)^T
+        v_local = (v @ F).reshape(B, -1)  # rows v^T F = (F^T v)^T
         M = obs[:, self.mat_idx].reshape(B, -1, 3, 3)  # [B, Q, 3, 3]
-        m_body = (R.transpose(1, 2).unsqueeze(1) @ M).reshape(B, -1)  # R^T M
-        return torch.cat([obs, v_body, m_body], dim=1)[:, self.perm]
+        m_local = (F.transpose(1, 2).unsqueeze(1) @ M).reshape(B, -1)  # F^T M
+        return torch.cat([obs, v_local, m_local], dim=1)[:, self.perm]
+
+
+def BodyFrameInput(layout: ObsLayout) -> FrameInput:
+    """Body-frame inputs for the world-frame encoders (``model.body_frame_obs``): R_i^T v, R_i^T R_j, R_i kept."""
+    return FrameInput(layout, "se3", keep_own_rot=True)

@@ -64,3 +64,35 @@ def typed_to_world(out: torch.Tensor, R: torch.Tensor, num_vectors: int) -> torc
     scalars, vectors = out[..., :num_scalars], out[..., num_scalars:]
     vectors = from_frame(vectors.reshape(*out.shape[:-1], num_vectors, 3), R.unsqueeze(-3))
     return torch.cat([scalars, vectors.flatten(-2)], dim=-1)
+
+
+# ----------------------------------------------------------------------------------------------- symmetry groups
+SYMMETRIES = ("none", "se3", "yaw")
+"""Groups an encoder can be made equivariant to (``model.symmetry``):
+
+- ``none``: world-frame inputs; only translations act (every position is relative), no rotation.
+- ``se3``: drone i's frame is its attitude R_i (the paper): equivariant to every global rotation.
+- ``yaw``: drone i's heading frame, the rotation about gravity by its yaw: equivariant to rotations about
+  the world z axis only, the symmetry the quadrotor dynamics really have (gravity breaks the rest).
+"""
+
+
+def yaw_frame(R: torch.Tensor) -> torch.Tensor:
+    """Heading frames [..., 3, 3] of attitudes ``R`` [..., 3, 3]: the rotation about z by the yaw of the body
+    x axis (its horizontal projection, normalised). A global rotation Q about z maps the frame to Q F."""
+    c, s = R[..., 0, 0], R[..., 1, 0]
+    h = torch.sqrt(c * c + s * s).clamp(min=1e-12)  # 0 only for a body x axis pointing straight up or down
+    c, s = c / h, s / h
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], dim=-1).unflatten(-1, (3, 3))
+
+
+def frame_of(symmetry: str, R: torch.Tensor) -> torch.Tensor:
+    """The canonicalizing frame of attitudes ``R`` [..., 3, 3] for ``symmetry`` (identity for ``none``)."""
+    if symmetry == "se3":
+        return R
+    if symmetry == "yaw":
+        return yaw_frame(R)
+    if symmetry == "none":
+        return torch.eye(3, dtype=R.dtype, device=R.device).expand(R.shape)
+    raise ValueError(f"unknown symmetry {symmetry!r}; valid: {list(SYMMETRIES)}")

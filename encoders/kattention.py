@@ -1,4 +1,5 @@
-"""K-Attention (QuadSwarm / Batra et al. CoRL 2021) and its SE(3)-canonicalized version.
+"""K-Attention (QuadSwarm / Batra et al. CoRL 2021); ``se3_kattention`` is this encoder canonicalized
+(``encoders.symmetric.Canonicalized`` with ``symmetry="se3"``, paper Lemma 1).
 
 Per neighbour j of drone i: embedding e_j = MLP([s_i, o_j]), value h_j = MLP(e_j), score
 a_j = MLP([e_j, mean_k e_k]); softmax of the scores over the real neighbours weights the values.
@@ -16,7 +17,6 @@ from torch import nn
 from quad_env.obs_layout import ObsLayout
 
 from .common import flat_inputs, masked_mean, masked_softmax, mlp, read_obs, self_input_dim, xavier_init_
-from .frames import canonicalize, own_rotation, typed_to_world
 
 
 class KAttention(nn.Module):
@@ -63,36 +63,3 @@ class KAttentionEncoder(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.net(*flat_inputs(self.layout, read_obs(self.layout, obs)))
 
-
-class SE3KAttentionEncoder(nn.Module):
-    """K-Attention made SE(3)-equivariant by canonicalization (paper, Lemma 1).
-
-    All inputs are expressed in drone i's frame (world vectors by R_i^T, rotations R_i^T R_j), the
-    K-Attention network runs there, and its output, typed as ``out_dim - 3 * out_vectors`` scalars plus
-    ``out_vectors`` 3-vectors, is mapped back to the world by R_i.
-
-    Args:
-        layout: observation layout.
-        hidden: width of the K-Attention MLPs.
-        out_dim: output width (scalars + 3 x vectors).
-        out_vectors: how many of the outputs are 3-vectors.
-        activation: nonlinearity.
-    """
-
-    def __init__(self, layout: ObsLayout, hidden: int = 256, out_dim: int = 512, out_vectors: int = 128,
-                 activation: str = "tanh"):
-        super().__init__()
-        if not 0 <= 3 * out_vectors <= out_dim:
-            raise ValueError(f"out_vectors={out_vectors} needs 0 <= 3 * out_vectors <= out_dim={out_dim}")
-        self.layout = layout
-        self.out_dim = out_dim
-        self.out_vectors = out_vectors
-        self.equivariance = (out_dim - 3 * out_vectors, out_vectors)
-        self.net = KAttention(self_input_dim(layout), layout.neighbor_dim, hidden, out_dim, activation)
-        xavier_init_(self)
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        fields = read_obs(self.layout, obs)
-        R = own_rotation(fields)  # [B, 3, 3]
-        out = self.net(*flat_inputs(self.layout, canonicalize(self.layout, fields, R)))  # [B, out_dim], frame i
-        return typed_to_world(out, R, self.out_vectors)

@@ -27,6 +27,32 @@ def random_rotation(rng: np.random.Generator, size: Tuple[int, ...] = ()) -> np.
     return Q
 
 
+def rotation_about_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def random_group_element(group: str, rng: np.random.Generator) -> np.ndarray:
+    """A random rotation of ``group``: "se3" any rotation (Haar), "yaw" a rotation about the world z axis,
+    "none" the identity (only translations act, and every position in an observation is relative)."""
+    if group == "se3":
+        return random_rotation(rng)
+    if group == "yaw":
+        return rotation_about_z(rng.uniform(-np.pi, np.pi))
+    if group == "none":
+        return np.eye(3)
+    raise ValueError(f"unknown group {group!r}; valid: ['none', 'se3', 'yaw']")
+
+
+def random_tilt(rng: np.random.Generator, min_angle: float = 0.5) -> np.ndarray:
+    """A rotation about a random horizontal axis by at least ``min_angle`` rad: outside the yaw group."""
+    phi = rng.uniform(0, 2 * np.pi)
+    axis = np.array([np.cos(phi), np.sin(phi), 0.0])
+    angle = rng.uniform(min_angle, np.pi - 0.1)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K  # Rodrigues
+
+
 def random_obs(layout: ObsLayout, batch: int, rng: np.random.Generator,
                num_real: Optional[Sequence[int]] = None, garbage: float = 0.0) -> np.ndarray:
     """A batch [B, D] of valid observations: Gaussian vectors, random rotations, a mask whose first
@@ -111,9 +137,10 @@ def equivariance_error(fn: Callable[[torch.Tensor], torch.Tensor], obs: torch.Te
 
 def assert_equivariant(fn: Callable[[torch.Tensor], torch.Tensor], obs: torch.Tensor, layout: ObsLayout,
                        rep: Tuple[int, int], rotations: int = 4, seed: int = 0,
-                       tolerance: Optional[float] = None) -> float:
-    """Check ``fn(Q . obs) == Q . fn(obs)`` for ``rotations`` random Q in SO(3), where Q acts on the
-    observation through ``layout.transform`` and on the output by ``rep = (num_scalars, num_vectors)``.
+                       tolerance: Optional[float] = None, group: str = "se3") -> float:
+    """Check ``fn(Q . obs) == Q . fn(obs)`` for ``rotations`` random Q of ``group`` ("se3": SO(3), "yaw":
+    rotations about z), where Q acts on the observation through ``layout.transform`` and on the output by
+    ``rep = (num_scalars, num_vectors)``.
 
     Returns the largest error; raises AssertionError if it exceeds ``tolerance`` (default: per dtype,
     ``EQUIVARIANCE_TOLERANCE``).
@@ -123,7 +150,7 @@ def assert_equivariant(fn: Callable[[torch.Tensor], torch.Tensor], obs: torch.Te
     rng = np.random.default_rng(seed)
     error = 0.0
     for _ in range(rotations):
-        Q = torch.as_tensor(random_rotation(rng), dtype=obs.dtype, device=obs.device)
+        Q = torch.as_tensor(random_group_element(group, rng), dtype=obs.dtype, device=obs.device)
         error = max(error, equivariance_error(fn, obs, layout, rep, Q))
     assert error <= tolerance, f"equivariance error {error:.3e} > tolerance {tolerance:.1e} for rep {rep}"
     return error
@@ -132,6 +159,7 @@ def assert_equivariant(fn: Callable[[torch.Tensor], torch.Tensor], obs: torch.Te
 # small sizes of every encoder for fast tests (the defaults are the paper's)
 TINY_OPTIONS = {
     "se3_graphormer": dict(multiplicity=4, zeta_sizes=(32, 16, 32, 32), out_vectors=8),
+    "graphormer": dict(multiplicity=4, zeta_sizes=(32, 16, 32, 32)),
     "se3_kattention": dict(hidden=16, out_dim=32, out_vectors=8),
     "kattention": dict(hidden=16, out_dim=32),
     "deepsets": dict(hidden=16, out_dim=32),

@@ -346,7 +346,6 @@ class ProgressLines:
 def cmd_run(args) -> int:
     """The job's entrypoint: train with the shipped config, joining the cluster."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    import encoders
     from swarm_appo.cluster import read_placement
     from swarm_appo.config import ConfigError, config_from_dict, validate, yaml_load
     from swarm_appo.trainer import fresh_run_dir, train
@@ -357,7 +356,7 @@ def cmd_run(args) -> int:
               file=sys.stderr)
         return 2
     try:
-        cfg = validate(config_from_dict(yaml_load(text)), known_encoders=encoders.ENCODERS)
+        cfg = validate(config_from_dict(yaml_load(text)))
     except ConfigError as exc:
         print(f"config error: {exc}", file=sys.stderr)
         return 2

@@ -18,7 +18,7 @@ import re
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Collection, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import yaml
 
@@ -39,13 +39,24 @@ class ModelConfig:
     """The actor-critic (``encoders.ActorCritic``)."""
 
     encoder: str = "deepsets"
-    """Neighbour encoder, a name in ``encoders.ENCODERS``: se3_graphormer, se3_kattention, kattention, deepsets, mlp."""
+    """Neighbour encoder, a name in ``encoders.ENCODERS``: the architectures graphormer, kattention, deepsets, mlp,
+    and the paper's names se3_graphormer, se3_kattention (= graphormer / kattention with ``symmetry: se3``)."""
+    symmetry: Optional[str] = None
+    """Symmetry group the encoder is made equivariant to by canonicalization (paper, Lemma 1), for every
+    architecture: "none" (world-frame inputs, the paper's baselines), "se3" (each input in drone i's frame
+    (x_i, R_i), typed outputs mapped back to world axes by R_i: the paper's SE(3) encoders), "yaw" (the same in
+    drone i's heading frame, the rotation about gravity by its yaw: the symmetry of the quadrotor dynamics).
+    null = the encoder name's own (se3 for se3_*, none otherwise)."""
+    size: str = "paper"
+    """Size preset of the encoder and the heads: "paper" (the paper's widths, head 256) or "small" (~64-wide
+    layers and heads, for a 2-core laptop). ``encoder_kwargs`` and ``head_hidden`` override single values."""
     encoder_kwargs: Dict[str, Any] = field(default_factory=dict)
-    """Options of the chosen encoder (its constructor keywords, e.g. ``{multiplicity: 16}``); empty = its defaults."""
+    """Options of the chosen encoder over its size preset (constructor keywords, e.g. ``{multiplicity: 16}``;
+    with a symmetry also ``out_vectors``, the number of 3-vector outputs); empty = the preset."""
     share_encoder: bool = False
     """Actor and critic share one encoder; False (the paper, Sample Factory's default) gives each its own."""
-    head_hidden: int = 256
-    """Hidden width of the actor and critic MLP heads on top of the encoder."""
+    head_hidden: Optional[int] = None
+    """Hidden width of the actor and critic MLP heads on top of the encoder; null = the size preset's (256 / 64)."""
     head_activation: str = "tanh"
     """Nonlinearity of the heads (the paper uses tanh)."""
     init_log_std: float = 0.0
@@ -60,8 +71,9 @@ class ModelConfig:
     body_frame_obs: bool = False
     """Give the network the observation in the drone's body frame (world vectors v -> R_i^T v, neighbour
     rotations -> R_i^T R_j, R_i kept): a rotor command depends on body-frame quantities, which a small
-    world-frame MLP must otherwise learn as products of its inputs. For deepsets / kattention / mlp; the
-    SE(3) encoders canonicalize by R_i themselves. Not in the paper (False)."""
+    world-frame MLP must otherwise learn as products of its inputs. Only with ``symmetry: none`` (a symmetry
+    canonicalizes the inputs itself). Not in the paper (False); note that it hands a "none" encoder part of
+    what ``se3`` canonicalization gives, so keep it off to compare symmetries."""
     init_actor_out_scale: float = 1.0
     """Multiplies the Xavier-uniform init of the actor's last layer (1 = the paper). 0.01 (PPO practice)
     makes the untrained policy command ``init_action_mean`` in every state instead of a random state-dependent
@@ -195,7 +207,7 @@ class TrainConfig:
 QUICKSTART: Dict[str, Any] = {
     "env": {"num_agents": 8, "scenario": "static_same_goal", "respawn_on_floor": True,
             "reward": {"crash": 2.0, "tilt": 1.0}},
-    "model": {"encoder": "deepsets", "encoder_kwargs": {"hidden": 64, "out_dim": 64}, "head_hidden": 64,
+    "model": {"encoder": "deepsets", "size": "small",
               "normalize_obs": True, "body_frame_obs": True, "init_action_mean": 0.053,
               "init_actor_out_scale": 0.01, "init_log_std": -2.0},
     "algo": {"batch_size": 2048, "num_epochs": 2, "lr": 3e-4},
@@ -434,11 +446,11 @@ def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
 
 
 # =============================================================================================== validation
-def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None) -> TrainConfig:
+def validate(cfg: TrainConfig) -> TrainConfig:
     """Check ranges and cross-field consistency; returns ``cfg``, raises ConfigError naming the key.
 
-    ``known_encoders`` (e.g. ``encoders.ENCODERS``) lets the caller check ``model.encoder`` without this
-    module depending on the encoders package.
+    Everything a run needs is checked here, before anything is written: the scenario name, the encoder name,
+    its symmetry and options (the actor-critic is built on torch's meta device, which allocates nothing).
     """
     config_from_dict(config_to_dict(cfg))  # type-check trees built in code, not only loaded ones
     try:
@@ -446,12 +458,10 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
     except ValueError as e:
         raise ConfigError(str(e)) from e
 
+    _check_scenario(cfg.env)
     m, a, r, w = cfg.model, cfg.algo, cfg.runner, cfg.wandb
-    if not m.encoder:
-        raise ConfigError("model.encoder must name an encoder")
-    if known_encoders is not None and m.encoder not in known_encoders:
-        raise ConfigError(f"model.encoder: unknown encoder {m.encoder!r}; valid: {list(known_encoders)}")
-    _check(m.head_hidden >= 1, "model.head_hidden", "must be >= 1", m.head_hidden)
+    _check_model(cfg)
+    _check(m.head_hidden is None or m.head_hidden >= 1, "model.head_hidden", "must be >= 1 or null", m.head_hidden)
     _check(m.init_actor_out_scale >= 0, "model.init_actor_out_scale", "must be >= 0", m.init_actor_out_scale)
     _check(-1.0 <= m.init_action_mean <= 1.0, "model.init_action_mean", "must be in [-1, 1] (the action range)",
            m.init_action_mean)
@@ -509,6 +519,42 @@ def validate(cfg: TrainConfig, known_encoders: Optional[Collection[str]] = None)
     _check(w.mode in WANDB_MODES, "wandb.mode", f"must be one of {list(WANDB_MODES)}", w.mode)
     _check(bool(w.project), "wandb.project", "must not be empty", w.project)
     return cfg
+
+
+def _check_scenario(env: EnvConfig) -> None:
+    from quad_env.scenarios import SCENARIO_REGISTRY, SCENARIOS
+    if env.scenario not in SCENARIO_REGISTRY:
+        close = difflib.get_close_matches(env.scenario, list(SCENARIOS), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ConfigError(f"env.scenario: unknown scenario {env.scenario!r}{hint}; valid: {list(SCENARIOS)}")
+
+
+def _check_model(cfg: TrainConfig) -> None:
+    """Encoder name, symmetry, size and options, by building the actor-critic on the meta device."""
+    import encoders  # late: the config tree itself needs neither torch nor the encoders
+    import torch
+
+    m = cfg.model
+    if m.encoder not in encoders.ENCODERS:
+        close = difflib.get_close_matches(m.encoder, list(encoders.ENCODERS), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ConfigError(f"model.encoder: unknown encoder {m.encoder!r}{hint}; valid: {list(encoders.ENCODERS)}")
+    _check(m.size in encoders.SIZES, "model.size", f"must be one of {list(encoders.SIZES)}", m.size)
+    _check(m.symmetry is None or m.symmetry in encoders.SYMMETRIES, "model.symmetry",
+           f"must be one of {list(encoders.SYMMETRIES)} or null (the encoder's own)", m.symmetry)
+    try:
+        _, symmetry = encoders.resolve(m.encoder, m.symmetry)
+    except ValueError as e:
+        raise ConfigError(f"model.encoder={m.encoder!r} and model.symmetry={m.symmetry!r} contradict: {e}") from e
+    if m.body_frame_obs and symmetry != "none":
+        raise ConfigError(f"model.body_frame_obs=true and model.symmetry={symmetry!r} (encoder {m.encoder!r}) both "
+                          f"rotate the inputs into the drone's frame: set model.body_frame_obs=false (the symmetry "
+                          f"canonicalizes the inputs itself) or model.symmetry=none")
+    try:
+        with torch.device("meta"):
+            encoders.ActorCritic(cfg.env.obs_layout(), **dataclasses.asdict(m))
+    except (TypeError, ValueError, ZeroDivisionError, RuntimeError) as e:
+        raise ConfigError(f"model.encoder_kwargs / model options do not build encoder {m.encoder!r}: {e}") from e
 
 
 def _check(ok: bool, key: str, requirement: str, value: Any) -> None:

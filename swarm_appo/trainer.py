@@ -163,8 +163,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
         log.info("resuming %s from %s", run_dir, ckpt_path)
     assert cfg is not None, "train() needs a config or a run directory to resume"
-    import encoders
-    validate(cfg, known_encoders=encoders.ENCODERS)
+    validate(cfg)
     if cfg.runner.ray_address is not None and not cfg.runner.serial:
         check_reachable(cfg.runner.ray_address)  # before a run dir exists: a typo leaves nothing behind
     if resume_dir is None:

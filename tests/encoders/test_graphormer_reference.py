@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import encoders
-from encoders.se3_graphormer import NODE_INPUTS, EquivariantGraphormerLayer, Graph, build_graph
+from encoders.graphormer import NODE_INPUTS, EquivariantGraphormerLayer, Graph, build_graph
 from encoders.common import read_obs
 from encoders.testing import TINY_OPTIONS, random_obs, random_rotation
 from quad_env.obs_layout import ObsLayout

@@ -8,8 +8,34 @@ from quad_env.obs_layout import ObsLayout
 
 
 def test_registered_names():
-    assert encoders.ENCODERS == ("se3_graphormer", "se3_kattention", "kattention", "deepsets", "mlp")
+    assert set(encoders.ENCODERS) == {"se3_graphormer", "se3_kattention", "graphormer", "kattention", "deepsets",
+                                      "mlp"}
     assert set(TINY_OPTIONS) == set(encoders.ENCODERS)
+    assert encoders.resolve("se3_kattention") == ("kattention", "se3")
+    assert encoders.resolve("se3_graphormer") == ("graphormer", "se3")
+    assert encoders.resolve("deepsets") == ("deepsets", "none")
+    assert encoders.resolve("deepsets", "yaw") == ("deepsets", "yaw")
+
+
+def test_alias_with_another_symmetry_names_both():
+    with pytest.raises(ValueError, match="se3_kattention.*'yaw'.*kattention"):
+        encoders.resolve("se3_kattention", "yaw")
+    with pytest.raises(ValueError, match="symmetry 'so2'.*none.*se3.*yaw"):
+        encoders.make_encoder("deepsets", ObsLayout(), symmetry="so2")
+    with pytest.raises(ValueError, match="size preset 'huge'.*paper.*small"):
+        encoders.make_encoder("deepsets", ObsLayout(), size="huge")
+
+
+@pytest.mark.parametrize("name", encoders.ENCODERS)
+def test_small_preset_is_smaller_and_kwargs_override_it(name):
+    layout = ObsLayout(6)
+    count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    small, paper = (encoders.make_encoder(name, layout, size=s) for s in ("small", "paper"))
+    assert count(small) * 5 < count(paper)
+    assert small.out_dim == 64
+    wider = encoders.make_encoder(name, layout, size="small", **({"zeta_sizes": (64, 64, 64, 96)}
+                                                                  if "graphormer" in name else {"out_dim": 96}))
+    assert wider.out_dim == 96
 
 
 def test_unknown_name_lists_valid_names():
@@ -49,7 +75,7 @@ def test_output_shape_and_declared_representation(name, layout):
     out = enc(torch.as_tensor(random_obs(layout, 5, np.random.default_rng(0)), dtype=torch.float32))
     assert out.shape == (5, enc.out_dim) and out.dtype == torch.float32
     assert torch.isfinite(out).all()
-    if name.startswith("se3_"):
+    if encoders.resolve(name)[1] != "none":
         scalars, vectors = enc.equivariance
         assert scalars + 3 * vectors == enc.out_dim and vectors > 0
     else:

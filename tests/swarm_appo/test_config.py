@@ -84,7 +84,7 @@ def test_overrides_apply_with_types():
     assert cfg.env.reward.pos == 1.0 and isinstance(cfg.env.reward.pos, float)
     assert cfg.runner.total_agent_steps == 5_000_000 and isinstance(cfg.runner.total_agent_steps, int)
     assert cfg.wandb.tags == ("a", "b")
-    assert cfg.model.encoder_kwargs == {"hidden": 64, "out_dim": 32}  # merged into the quickstart options
+    assert cfg.model.encoder_kwargs == {"out_dim": 32} and cfg.model.size == "small"  # over the quickstart preset
     assert cfg.env.sensing_radius == 2.0
     # Later overrides win; the other fields keep the file's values.
     cfg = load_config(PAPER_YAML, ["algo.lr=1e-3", "algo.lr=2e-3"])
@@ -152,11 +152,34 @@ def test_inconsistent_worker_settings():
     assert load_config(None, ["runner.device=cuda:1"]).runner.device == "cuda:1"
 
 
-def test_validate_checks_encoder_names_when_given():
-    cfg = load_config(None, ["model.encoder=transformer"])  # not checked without a registry
-    with pytest.raises(ConfigError, match=r"unknown encoder 'transformer'; valid: \['deepsets', 'mlp'\]"):
-        validate(cfg, known_encoders=["deepsets", "mlp"])
-    assert validate(load_config(None), known_encoders=["deepsets"]).model.encoder == "deepsets"
+@pytest.mark.parametrize("overrides,message", [
+    (["model.encoder=transformer"], r"model.encoder: unknown encoder 'transformer'.*valid: \['se3_graphormer'"),
+    (["env.scenario=statc_same_goal"], r"env.scenario: unknown scenario 'statc_same_goal' \(did you mean "
+                                       r"'static_same_goal'\?\); valid: \["),
+    (["model.symmetry=so2"], r"model.symmetry must be one of \['none', 'se3', 'yaw'\]"),
+    (["model.size=huge"], r"model.size must be one of \['paper', 'small'\]"),
+    (["model.encoder=se3_kattention", "model.body_frame_obs=false", "model.symmetry=yaw"],
+     r"model.encoder='se3_kattention' and model.symmetry='yaw' contradict"),
+    # the quickstart has body_frame_obs on:
+    (["model.encoder=se3_graphormer"], r"model.body_frame_obs=true and model.symmetry='se3'"),
+    (["model.symmetry=yaw"], r"model.body_frame_obs=true and model.symmetry='yaw'"),
+    (["model.encoder=graphormer", "model.body_frame_obs=false", "model.encoder_kwargs.hidden=8"],
+     r"model.encoder_kwargs.*unknown option\(s\) \['hidden'\]"),
+    (["model.encoder_kwargs.hidden=0"], r"model.encoder_kwargs"),
+    (["model.encoder=se3_kattention", "model.body_frame_obs=false", "model.encoder_kwargs.out_vectors=30"],
+     r"model.encoder_kwargs.*out_vectors=30"),
+])
+def test_validate_checks_names_symmetry_and_encoder_options(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, overrides)
+
+
+@pytest.mark.parametrize("encoder", ["se3_graphormer", "se3_kattention", "graphormer", "kattention", "mlp"])
+def test_any_encoder_on_the_quickstart_uses_its_own_small_sizes(encoder):
+    cfg = load_config(None, [f"model.encoder={encoder}", "model.body_frame_obs=false"])
+    assert cfg.model.size == "small" and cfg.model.encoder_kwargs == {}
+    cfg = load_config("configs/paper.yaml", [f"model.encoder={encoder}", "model.size=small"])
+    assert cfg.model.size == "small"
 
 
 def test_validate_type_checks_trees_built_in_code():

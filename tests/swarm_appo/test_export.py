@@ -100,7 +100,8 @@ def test_sidecar_slices_read_the_observation_as_the_layout_does(tmp_path):
 
 def test_export_command_on_a_checkpoint(tmp_path, capsys):
     run = untrained_checkpoint(tmp_path, "q", ["env.num_agents=4", f"env.num_neighbors={K}",
-                                               "model.encoder=se3_kattention"], TINY_OPTIONS["se3_kattention"])
+                                               "model.encoder=se3_kattention", "model.body_frame_obs=false"],
+                               TINY_OPTIONS["se3_kattention"])
     assert export.main(["--checkpoint", str(run), "--out", str(tmp_path / "out")]) == 0
     assert "max |error|" in capsys.readouterr().out
     side = json.loads((tmp_path / "out" / "actor.json").read_text())

@@ -1,26 +1,28 @@
-"""The paper's Group Equivariant Graphormer (sections 5-6) for SE(3), built by canonicalization.
+"""The paper's Group Equivariant Graphormer (sections 5-6), built by canonicalization, for any symmetry.
 
 Graph: drone i and its real neighbours are the nodes (masked slots are left out); node v carries a frame
-g_v = (R_v, x_v) -- R_v its attitude, x_v its position relative to drone i -- and features f_v of types
-0 and 1 (``m`` scalars and ``m`` 3-vectors, kept in world axes between layers). Edges join every pair of
+g_v = (F_v, x_v) -- x_v its position relative to drone i, F_v the rotation of its frame: its attitude R_v
+for ``symmetry="se3"`` (the paper's ``se3_graphormer``), its heading frame (yaw about gravity) for ``"yaw"``,
+the world axes for ``"none"`` (the non-equivariant baseline of the same architecture) -- and features f_v of
+types 0 and 1 (``m`` scalars and ``m`` 3-vectors, each node's own in its own frame). Edges join every pair of
 nodes (self-loops included) closer than ``edge_radius``; with the default ``None`` the graph is complete,
 as every observed neighbour already lies within drone i's sensing range.
 
 Layer l updates node v by the paper's rule  f_v <- phi_{g_v}[ mu( f_v' + attn_v(phi_{g_v^-1}[F]) ) ]:
 every node p is seen in v's frame as the pair input
 
-    x_vp = [ |x_p - x_v|,  s_p,  R_v^T (x_p - x_v),  R_v^T R_p,  R_v^T V_p ]      (= phi_{g_v^-1}[(g_p, f_p)])
+    x_vp = [ |x_p - x_v|,  s_p,  F_v^T (x_p - x_v),  F_v^T R_p,  F_v^T F_p V_p ]      (= phi_{g_v^-1}[(g_p, f_p)])
 
 attn_v = sum_p softmax_p(q_v . W_K x_vp / sqrt(d)) W_V x_vp with q_v = W_Q f_v', mu = LayerNorm and a
-residual feed-forward block with LayerNorm, and the result, in v's frame, is mapped back by R_v.
+residual feed-forward block with LayerNorm, and the result stays in v's frame.
 
 Nothing of size N x N x features is built: because x_vp is linear in the world-frame node data,
-  q_v . W_K x_vp = (R_v-rotated W_K^T q_v) . z_p + const_v   and   sum_p a_vp x_vp = canon_v(sum_p a_vp z_p),
+  q_v . W_K x_vp = (F_v-rotated W_K^T q_v) . z_p + const_v   and   sum_p a_vp x_vp = canon_v(sum_p a_vp z_p),
 so keys and values cost one matmul per *node*, and the pair work is two small batched matmuls
 ([B, N, Z] x [B, Z, N]). The test suite checks this against the literal per-pair formula.
 
-Readout (section 6): zeta(canonical own state (+) mean_j R_i^T f_j^L), typed as scalars + 3-vectors and
-mapped back by R_i.
+Readout (section 6): zeta(canonical own state (+) mean_j F_i^T f_j^L), typed as scalars + 3-vectors and
+mapped back by F_i.
 """
 from __future__ import annotations
 
@@ -33,7 +35,7 @@ from torch import nn
 from quad_env.obs_layout import ObsLayout
 
 from .common import activation, mlp, read_obs, self_input_dim, self_keys, xavier_init_
-from .frames import canonicalize, own_rotation, typed_to_world
+from .frames import SYMMETRIES, canonicalize, frame_of, own_rotation, typed_to_world
 
 NODE_INPUTS = 10  # per node, in its own frame: velocity (3), goal offset (3), body rates (3), is-self flag (1)
 POSE_CHANNELS = 4  # vector channels of a node's pose: its position and the 3 columns of its attitude
@@ -49,9 +51,11 @@ def rotate(R: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
 class Graph:
     """Drone i's local graph: node frames and edges, all [B, N, ...] with N = K + 1 (node 0 is drone i)."""
 
-    def __init__(self, R: torch.Tensor, x: torch.Tensor, node_mask: torch.Tensor, edge_radius: Optional[float]):
+    def __init__(self, R: torch.Tensor, x: torch.Tensor, node_mask: torch.Tensor, edge_radius: Optional[float],
+                 F: Optional[torch.Tensor] = None):
         self.R = R  # [B, N, 3, 3] body -> world attitude of each node
-        self.Rt = R.transpose(-1, -2)
+        self.F = R if F is None else F  # [B, N, 3, 3] rotation of each node's frame (se3: its attitude)
+        self.Ft = self.F.transpose(-1, -2)
         self.x = x  # [B, N, 3] position relative to drone i
         self.node_mask = node_mask  # [B, N] bool
         self.dist = torch.cdist(x, x, compute_mode="donot_use_mm_for_euclid_dist")  # [B, N, N]
@@ -87,15 +91,15 @@ class EquivariantGraphormerLayer(nn.Module):
     def forward(self, f: torch.Tensor, g: Graph) -> torch.Tensor:
         B, N, _ = f.shape
         m, H, C = self.m, self.heads, POSE_CHANNELS + self.m
-        # world-frame node data z_p = [s_p | (x_p, R_p, R_p V_p) as a spatial-major vector block]
-        vec_world = torch.cat([g.pose, rotate(g.R, f[..., m:].unflatten(-1, (3, m)))], dim=-1)  # [B, N, 3, C]
+        # world-frame node data z_p = [s_p | (x_p, R_p, F_p V_p) as a spatial-major vector block]
+        vec_world = torch.cat([g.pose, rotate(g.F, f[..., m:].unflatten(-1, (3, m)))], dim=-1)  # [B, N, 3, C]
         z = torch.cat([f[..., :m], vec_world.flatten(-2)], dim=-1)  # [B, N, Z]
 
         # keys: q_v . W_K x_vp = w_v . z_p + (term constant in p), w_v = W_K^T q_v with its vectors in world axes
         q = self.W_Q(f).unflatten(-1, (H, self.head_dim))  # [B, N, H, d]
         w = torch.einsum("bnhd,hdx->bnhx", q, self.W_K.weight.unflatten(0, (H, self.head_dim)))
         w = w * (1.0 / math.sqrt(self.head_dim))  # [B, N, H, X] in v's frame
-        w_vec = rotate(g.R, w[..., 1 + m:].unflatten(-1, (3, C)))  # [B, N, H, 3, C] world axes
+        w_vec = rotate(g.F, w[..., 1 + m:].unflatten(-1, (3, C)))  # [B, N, H, 3, C] world axes
         w_world = torch.cat([w[..., 1:1 + m], w_vec.flatten(-2)], dim=-1)  # [B, N, H, Z]
         logits = torch.bmm(w_world.reshape(B, N * H, -1), z.transpose(1, 2)).view(B, N, H, N)
         logits = logits + w[..., :1] * g.dist.unsqueeze(2)  # distance term, [B, N, H, N]
@@ -107,7 +111,7 @@ class EquivariantGraphormerLayer(nn.Module):
         agg_dist = torch.einsum("bvhp,bvp->bvh", alpha, g.dist).unsqueeze(-1)  # [B, N, H, 1]
         agg_vec = agg[..., m:].unflatten(-1, (3, C))
         agg_vec = torch.cat([agg_vec[..., :1] - g.x.view(B, N, 1, 3, 1), agg_vec[..., 1:]], dim=-1)
-        agg_vec = rotate(g.Rt, agg_vec)  # [B, N, H, 3, C] in v's frame
+        agg_vec = rotate(g.Ft, agg_vec)  # [B, N, H, 3, C] in v's frame
         pair = torch.cat([agg_dist, agg[..., :m], agg_vec.flatten(-2)], dim=-1)  # [B, N, H, X]
         if H == 1:
             attn = self.W_V(pair.squeeze(2))  # [B, N, F]
@@ -119,8 +123,8 @@ class EquivariantGraphormerLayer(nn.Module):
         return self.norm_ffn(u + self.ffn(u))  # [B, N, F] in v's frame
 
 
-def build_graph(layout: ObsLayout, fields, edge_radius: Optional[float]):
-    """Node frames and canonical node inputs [B, N, NODE_INPUTS] from ``read_obs`` fields."""
+def build_graph(layout: ObsLayout, fields, edge_radius: Optional[float], symmetry: str = "se3"):
+    """Node frames (of ``symmetry``) and canonical node inputs [B, N, NODE_INPUTS] from ``read_obs`` fields."""
     R_i = own_rotation(fields)  # [B, 3, 3]
     mask = fields["mask"]  # [B, K]
     B, K = mask.shape
@@ -137,14 +141,15 @@ def build_graph(layout: ObsLayout, fields, edge_radius: Optional[float]):
     is_self = torch.zeros_like(x[..., :1])
     is_self[:, 0] = 1.0
     node_mask = torch.cat([mask.new_ones(B, 1), mask], dim=1)  # [B, N]
-    graph = Graph(R, x, node_mask, edge_radius)
-    # canonical node inputs: vectors in the node's own frame (R_v^T v), body rates and the flag unchanged
-    vel_goal = torch.einsum("bnji,bnjc->bnic", R, torch.stack([vel, goal], dim=-1))  # [B, N, 3, 2]
+    F = frame_of(symmetry, R)  # [B, N, 3, 3]
+    graph = Graph(R, x, node_mask, edge_radius, F)
+    # canonical node inputs: vectors in the node's own frame (F_v^T v), body rates and the flag unchanged
+    vel_goal = torch.einsum("bnji,bnjc->bnic", F, torch.stack([vel, goal], dim=-1))  # [B, N, 3, 2]
     inputs = torch.cat([vel_goal.flatten(-2), omega, is_self], dim=-1)  # [B, N, NODE_INPUTS]
     return graph, inputs
 
 
-class SE3GraphormerEncoder(nn.Module):
+class GraphormerEncoder(nn.Module):
     """pi_hat of the paper: Group Equivariant Graphormer on drone i's local graph, then zeta.
 
     Args:
@@ -159,24 +164,33 @@ class SE3GraphormerEncoder(nn.Module):
         zeta_activation: nonlinearity of zeta (paper tanh, after every layer).
         out_vectors: how many of zeta's outputs are 3-vectors (mapped back by R_i); the rest are scalars.
         edge_radius: join only nodes closer than this (metres); None joins all nodes.
+        symmetry: the group of the node frames (``encoders.frames.SYMMETRIES``): "se3" (the paper), "yaw" or
+            "none" (world axes everywhere: the same architecture without the symmetry).
     """
+
+    handles_symmetry = True  # canonicalizes node by node itself (the registry does not wrap it)
 
     def __init__(self, layout: ObsLayout, multiplicity: int = 60, num_layers: int = 3, num_heads: int = 1,
                  ffn_dim: Optional[int] = None, ffn_activation: str = "relu",
                  zeta_sizes: Sequence[int] = (256, 128, 256, 256), zeta_activation: str = "tanh",
-                 out_vectors: int = 64, edge_radius: Optional[float] = None):
+                 out_vectors: Optional[int] = None, edge_radius: Optional[float] = None, symmetry: str = "se3"):
         super().__init__()
+        if symmetry not in SYMMETRIES:
+            raise ValueError(f"unknown symmetry {symmetry!r}; valid: {list(SYMMETRIES)}")
         if multiplicity < 1 or num_layers < 1:
             raise ValueError(f"multiplicity ({multiplicity}) and num_layers ({num_layers}) must be >= 1")
         if len(zeta_sizes) < 3:
             raise ValueError(f"zeta_sizes needs at least 3 widths (2 before the join, 1+ after), got {zeta_sizes}")
         out_dim = zeta_sizes[-1]
+        if out_vectors is None:  # the paper's 64 of 256 (a quarter); plain world-axis outputs without a symmetry
+            out_vectors = 0 if symmetry == "none" else out_dim // 4
         if not 0 <= 3 * out_vectors <= out_dim:
             raise ValueError(f"out_vectors={out_vectors} needs 0 <= 3 * out_vectors <= zeta_sizes[-1]={out_dim}")
         self.layout = layout
         self.out_dim = out_dim
         self.out_vectors = out_vectors
-        self.equivariance = (out_dim - 3 * out_vectors, out_vectors)
+        self.symmetry = symmetry
+        self.equivariance = None if symmetry == "none" else (out_dim - 3 * out_vectors, out_vectors)
         self.edge_radius = edge_radius
         self.m = multiplicity
         width = 4 * multiplicity
@@ -191,7 +205,7 @@ class SE3GraphormerEncoder(nn.Module):
     def node_features(self, obs: torch.Tensor):
         """Final node features, canonical (each in its own node's frame) [B, N, 4 m], with the graph."""
         fields = read_obs(self.layout, obs)
-        graph, inputs = build_graph(self.layout, fields, self.edge_radius)
+        graph, inputs = build_graph(self.layout, fields, self.edge_radius, self.symmetry)
         f = self.embed(inputs)  # [B, N, 4m], node v's features in v's frame
         for layer in self.layers:
             f = layer(f, graph)
@@ -200,17 +214,17 @@ class SE3GraphormerEncoder(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         f, g, fields = self.node_features(obs)
         m = self.m
-        # mean over real nodes of phi_{g_i^-1} f_j = (s_j, R_i^T R_j V_j)
+        # mean over real nodes of phi_{g_i^-1} f_j = (s_j, F_i^T F_j V_j)
         w = g.node_mask.to(f.dtype).unsqueeze(-1)  # [B, N, 1]
         count = w.sum(1)  # [B, 1], >= 1 (drone i itself)
         mean_s = (f[..., :m] * w).sum(1) / count  # [B, m]
-        vec_world = rotate(g.R, f[..., m:].unflatten(-1, (3, m)))  # [B, N, 3, m]
+        vec_world = rotate(g.F, f[..., m:].unflatten(-1, (3, m)))  # [B, N, 3, m]
         mean_vec = (vec_world * w.unsqueeze(-1)).sum(1) / count.unsqueeze(-1)  # [B, 3, m] world
-        R_i = g.R[:, 0]
-        mean_vec = R_i.transpose(-1, -2) @ mean_vec  # [B, 3, m] in drone i's frame
+        F_i = g.F[:, 0]
+        mean_vec = F_i.transpose(-1, -2) @ mean_vec  # [B, 3, m] in drone i's frame
 
-        canon = canonicalize(self.layout, fields, R_i, groups=("self", "obstacle"))
+        canon = canonicalize(self.layout, fields, F_i, groups=("self", "obstacle"))
         state = torch.cat([canon[k] for k in self_keys(self.layout)], dim=-1)  # [B, S]
         h = self.zeta_state(state)
         out = self.zeta_joint(torch.cat([h, mean_s, mean_vec.flatten(-2)], dim=-1))  # [B, out_dim] frame i
-        return typed_to_world(out, R_i, self.out_vectors)
+        return typed_to_world(out, F_i, self.out_vectors)
