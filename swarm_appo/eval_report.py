@@ -5,7 +5,10 @@ Output folder::
 
     table1_scenarios.md / .csv   the paper's Table 1: per scenario (x N), per policy
     table2_scaling.md / .csv     the paper's Table 2 (only with several N): per N, scenarios pooled
-    episodes.jsonl               one record per episode: policy, N, scenario, seed, every stat
+    episodes.jsonl               one record per episode: policy, N, scenario, seed, every stat, and the
+                                 tables' columns of the episode as table_<csv column> (table_reward: the
+                                 paper's reward terms, table_reward_shaping: the others, table_collisions:
+                                 Col, table_collisions_drone: ColD, ...)
     placement.json               (Ray runs) actors, and tasks and episodes per Ray node
     trajectories/*.png           the first episode of every (policy, N, scenario)
     wandb/                       offline wandb run (``wandb sync`` uploads it)
@@ -23,8 +26,8 @@ import numpy as np
 
 from quad_env.render import save_trajectory_png
 from swarm_appo.eval_tables import (
-    TABLE1_METRICS, TABLE2_METRICS, EpisodeGroup, csv_header, csv_records, table1_rows, table2_rows, to_csv,
-    to_markdown,
+    TABLE1_METRICS, TABLE2_METRICS, EpisodeGroup, csv_header, csv_records, episode_columns, table1_rows,
+    table2_rows, to_csv, to_markdown,
 )
 
 
@@ -117,7 +120,8 @@ def write_report(out: Path, setup: EvalSetup, results, labels: Sequence[str]) ->
             done[key] = first + len(r.episodes)
             for i, e in enumerate(r.episodes):
                 record = {"policy": labels[t.policy], "num_agents": t.num_agents, "eval_scenario": t.scenario,
-                          "episode": first + i, "task_seed": t.seed, **{k: _jsonable(v) for k, v in e.items()}}
+                          "episode": first + i, "task_seed": t.seed, **{k: _jsonable(v) for k, v in e.items()},
+                          **{f"table_{k}": v for k, v in episode_columns(e).items()}}
                 f.write(json.dumps(record) + "\n")
     report.files.append(out / "episodes.jsonl")
 

@@ -5,13 +5,20 @@ Input: ``EpisodeGroup``s, the episodes of one (policy, swarm size N, scenario) a
 ddof = 0: the spread of the episodes, not the error of the mean; the CSV carries the episode count to
 compute either). Table 2 pools the episodes of all scenarios of one N, as the paper does.
 
-Columns (the paper's names; the definitions are those of ``swarm_appo.metrics``):
+Columns (the paper's names; ``METRICS`` says which episode stats make each; all after the 1.5 s grace
+period where contacts are counted):
 
-    Rew    episode reward, mean per drone                              (stat ``return``)
-    Dist   mean distance to goal over the last 5 s, m                  (``dist_last_5s``)
-    Col    new drone-drone contacts per episode after the 1.5 s grace  (``collisions_after_grace``)
-    Suc %  drones that reached their goal and had no contact after the grace, percent (``success_rate``)
-    IColR  share of drones with a drone-drone contact after the grace  (``inter_collision_rate``)
+    Rew      episode reward per drone, the paper's terms c1..c5 only (``PAPER_REWARD_TERMS``)
+    Shaping  the reward terms that are not the paper's (``SHAPING_REWARD_TERMS``), per drone; in the
+             Markdown table only when some row has them
+    Dist     mean distance to goal over the last 5 s, m
+    Col      new contacts per episode with the environment or other drones: drone-drone pairs,
+             drone-obstacle and drone-room (floor, walls, ceiling) contacts
+    ColD     new drone-drone contacts (pairs) per episode
+    Suc %    drones within 0.5 m of their goal during the whole last 1 s and without a collision, percent
+    IColR    share of drones with a drone-drone contact
+    (CSV only, when the stats carry ``reached_rate``: ``reached_pct``, drones that came within 0.5 m of
+    their goal at some time, percent)
 
 With several policies the best mean of each column among the rows of one scenario (Table 1) or one
 N (Table 2) is printed in bold in the Markdown table, as in the paper.
@@ -26,26 +33,48 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from quad_env.params import REWARD_TERMS
+
+PAPER_REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action")  # the paper's c1..c5
+SHAPING_REWARD_TERMS = tuple(t for t in REWARD_TERMS if t not in PAPER_REWARD_TERMS)  # floor, tilt, crash
+
 
 @dataclass(frozen=True)
 class Metric:
     column: str  # header in the Markdown table
     csv_name: str  # prefix of the CSV columns <csv_name>_mean, <csv_name>_std
-    stat: str  # key in the episode stats dict
-    scale: float  # the table shows stat * scale
+    stats: Tuple[str, ...]  # keys in the episode stats dict, summed ...
+    scale: float  # ... and the table shows (sum - sum of ``minus``) * scale
     decimals: int
     higher_is_better: bool
+    minus: Tuple[str, ...] = ()  # keys subtracted
+    markdown: str = "always"  # in the Markdown table: "always", "nonzero" (when some row is not 0) or "never"
+    optional: bool = False  # computed only when every episode has the stats (else the column is left out)
+
+    def value(self, episode: dict) -> float:
+        """The metric of one episode, unscaled (Suc as a share)."""
+        return sum(float(episode[k]) for k in self.stats) - sum(float(episode[k]) for k in self.minus)
+
+    def available(self, episode: dict) -> bool:
+        return all(k in episode for k in self.stats + self.minus)
 
 
 METRICS: Dict[str, Metric] = {
-    "rew": Metric("Rew", "reward", "return", 1.0, 2, True),
-    "dist": Metric("Dist", "dist", "dist_last_5s", 1.0, 2, False),
-    "col": Metric("Col", "collisions", "collisions_after_grace", 1.0, 2, False),
-    "suc": Metric("Suc %", "success_pct", "success_rate", 100.0, 1, True),
-    "icolr": Metric("IColR", "inter_collision_rate", "inter_collision_rate", 1.0, 3, False),
+    "rew": Metric("Rew", "reward", tuple(f"rew_{t}" for t in PAPER_REWARD_TERMS), 1.0, 2, True),
+    "shaping": Metric("Shaping", "reward_shaping", tuple(f"rew_{t}" for t in SHAPING_REWARD_TERMS), 1.0, 2, True,
+                      markdown="nonzero"),
+    "dist": Metric("Dist", "dist", ("dist_last_5s",), 1.0, 2, False),
+    "dist_final": Metric("Dist end", "dist_final", ("dist_final",), 1.0, 2, False, markdown="never"),
+    "col": Metric("Col", "collisions", ("collisions_after_grace", "room_contacts_after_grace"), 1.0, 2, False),
+    "cold": Metric("ColD", "collisions_drone", ("collisions_after_grace",), 1.0, 2, False,
+                   minus=("obstacle_collisions_after_grace",)),
+    "suc": Metric("Suc %", "success_pct", ("success_rate",), 100.0, 1, True),
+    "reached": Metric("Reached %", "reached_pct", ("reached_rate",), 100.0, 1, True, markdown="never",
+                      optional=True),
+    "icolr": Metric("IColR", "inter_collision_rate", ("inter_collision_rate",), 1.0, 3, False),
 }
-TABLE1_METRICS = ("rew", "dist", "col", "suc", "icolr")
-TABLE2_METRICS = ("rew", "col", "suc", "icolr")
+TABLE1_METRICS = ("rew", "shaping", "dist", "col", "cold", "suc", "reached", "icolr")
+TABLE2_METRICS = ("rew", "shaping", "col", "cold", "suc", "reached", "icolr")
 
 
 @dataclass
@@ -68,15 +97,35 @@ class Row:
 
 
 def summarize_episodes(episodes: Sequence[dict], metrics: Sequence[str]) -> Dict[str, Tuple[float, float]]:
-    """``{metric: (mean, std)}`` over episodes, in table units (Suc in percent)."""
+    """``{metric: (mean, std)}`` over episodes, in table units (Suc in percent); an optional metric only
+    when every episode has its stats."""
     if not episodes:
         raise ValueError("no episodes to summarize")
     out = {}
     for name in metrics:
         m = METRICS[name]
-        x = np.array([float(e[m.stat]) for e in episodes], dtype=np.float64) * m.scale  # [episodes]
+        if m.optional and not all(m.available(e) for e in episodes):
+            continue
+        x = np.array([m.value(e) for e in episodes], dtype=np.float64) * m.scale  # [episodes]
         out[name] = (float(x.mean()), float(x.std()))
     return out
+
+
+def shown_metrics(rows: Sequence[Row], metrics: Sequence[str], markdown: bool) -> List[str]:
+    """The metrics every row has, in order; for the Markdown table without the CSV-only ones and without
+    those shown only when nonzero (Shaping) where every row is 0 ± 0."""
+    shown = [m for m in metrics if all(m in r.values for r in rows)]
+    if markdown:
+        shown = [m for m in shown if METRICS[m].markdown == "always" or
+                 (METRICS[m].markdown == "nonzero" and any(v != 0 for r in rows for v in r.values[m]))]
+    return shown
+
+
+def episode_columns(episode: dict, metrics: Sequence[str] = TABLE1_METRICS) -> Dict[str, float]:
+    """``{csv_name: value}`` of one episode in table units, for the metrics whose stats it has (the
+    table's columns of a single episode: episodes.jsonl carries them as ``table_<csv_name>``)."""
+    return {METRICS[m].csv_name: METRICS[m].value(episode) * METRICS[m].scale for m in metrics
+            if METRICS[m].available(episode)}
 
 
 def _ordered(values) -> list:
@@ -129,9 +178,11 @@ def _best_rows(rows: Sequence[Row], metric: str) -> set:
 
 
 def to_markdown(rows: Sequence[Row], metrics: Sequence[str]) -> str:
-    """A GitHub Markdown table: the label columns, then ``mean ± std`` per metric (best in bold)."""
+    """A GitHub Markdown table: the label columns, then ``mean ± std`` per shown metric (``shown_metrics``;
+    best in bold)."""
     if not rows:
         raise ValueError("no rows")
+    metrics = shown_metrics(rows, metrics, markdown=True)
     label_cols = list(rows[0].labels)
     header = label_cols + [METRICS[m].column for m in metrics]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(label_cols) + "---:|" * len(metrics)]
@@ -148,13 +199,16 @@ def to_markdown(rows: Sequence[Row], metrics: Sequence[str]) -> str:
 
 
 def csv_header(rows: Sequence[Row], metrics: Sequence[str]) -> List[str]:
+    """Label columns, ``episodes``, then ``<csv_name>_mean``, ``<csv_name>_std`` of every metric all rows have."""
     label_cols = ["num_agents" if c == "N" else c for c in rows[0].labels]
-    stats = [f"{METRICS[m].csv_name}_{s}" for m in metrics for s in ("mean", "std")]
+    stats = [f"{METRICS[m].csv_name}_{s}" for m in shown_metrics(rows, metrics, markdown=False)
+             for s in ("mean", "std")]
     return label_cols + ["episodes"] + stats
 
 
 def csv_records(rows: Sequence[Row], metrics: Sequence[str]) -> List[list]:
     """One list per row, in ``csv_header`` order, numbers at full precision (also the wandb Table data)."""
+    metrics = shown_metrics(rows, metrics, markdown=False)
     return [list(r.labels.values()) + [r.episodes] + [v for m in metrics for v in r.values[m]] for r in rows]
 
 

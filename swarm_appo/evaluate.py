@@ -19,7 +19,9 @@ and the number of workers, so every policy flies the same episodes, and serial a
 numbers. (Task 0 uses the seed itself: with ``--episodes`` up to ``--episodes-per-task``, the training
 scenario and the default seed, the CLI repeats the end-of-run evaluation exactly.)
 
-Each checkpoint acts in the environment it was trained in, with only the scenario and N replaced: the
+Each checkpoint acts in ``evaluation_env`` of the environment it was trained in: the training aids
+(``TRAINING_AIDS``: respawn on the floor, collision replay) switched off, the scenario and N replaced, all
+else (physics, noise, reward coefficients) kept; the end-of-run evaluation uses the same function. The
 policies are size-independent (K neighbour slots, padded and masked when N - 1 < K), so N may change
 freely; an observation layout that differs from the checkpoint's (K, neighbour fields) is an error.
 """
@@ -39,10 +41,32 @@ import torch
 from quad_env import EnvConfig, ObsLayout, VecQuadEnv
 from quad_env.render import Episode, SwarmRecorder
 from quad_env.scenarios import SCENARIO_REGISTRY, SCENARIOS
+from swarm_appo.eval_tables import METRICS
 
 Policy = Callable[[np.ndarray], np.ndarray]  # obs [M, D] -> actions [M, 4]
 
 EXCLUDED_FROM_ALL = ("mix",)  # a random mixture of the others: its episodes already appear under their names
+
+# EnvConfig fields that exist only to help training, and their value in every evaluation. Reward
+# coefficients (shaping included) stay: they change no observation, and the tables report the paper's
+# terms apart from the shaping ones (swarm_appo.eval_tables).
+TRAINING_AIDS = {
+    "respawn_on_floor": False,  # a crashed drone would be put back in the air
+    "replay_prob": 0.0,  # collision replay (auto-resets only: evaluation never auto-resets, set for clarity)
+}
+
+
+def evaluation_env(train_env: EnvConfig, num_agents: Optional[int] = None,
+                   scenario: Optional[str] = None) -> EnvConfig:
+    """The environment a policy is judged in, by the command line and at the end of a run: its training
+    environment without the training aids (``TRAINING_AIDS``), with N and the scenario replaced when given.
+    The training config is not modified."""
+    changes: Dict[str, object] = dict(TRAINING_AIDS)
+    if num_agents is not None:
+        changes["num_agents"] = num_agents
+    if scenario is not None:
+        changes["scenario"] = scenario
+    return dataclasses.replace(train_env, **changes)
 
 
 # ----------------------------------------------------------------------------------------------- policies
@@ -90,12 +114,17 @@ def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: in
     return fly_episodes(env_cfg, policy, num_episodes, seed)[0]
 
 
+# <prefix>/<name> of the end-of-run evaluation <- the table metric (swarm_appo.eval_tables.METRICS) it is
+# the episode mean of, unscaled (success and reached rates as shares); described in swarm_appo.metrics.METRICS
+SUMMARY_METRICS = {"reward": "rew", "reward_shaping": "shaping", "dist": "dist", "dist_final": "dist_final",
+                   "collisions": "col", "collisions_drone": "cold", "success_rate": "suc", "reached_rate": "reached",
+                   "inter_collision_rate": "icolr"}
+
+
 def summarize(episodes: List[Dict], prefix: str) -> Dict[str, float]:
-    keys = {"return": "reward", "dist_last_5s": "dist", "dist_final": "dist_final",
-            "collisions_after_grace": "collisions", "success_rate": "success_rate",
-            "inter_collision_rate": "inter_collision_rate"}
-    return {f"{prefix}/{name}": float(np.mean([e[k] for e in episodes])) for k, name in keys.items()
-            if episodes and k in episodes[0]}
+    """``{prefix}/{name}``: the episode means of the tables' columns (those the episodes have the stats of)."""
+    return {f"{prefix}/{name}": float(np.mean([METRICS[key].value(e) for e in episodes]))
+            for name, key in SUMMARY_METRICS.items() if episodes and all(METRICS[key].available(e) for e in episodes)}
 
 
 def default_eval_seed(train_seed: int) -> int:
@@ -103,9 +132,11 @@ def default_eval_seed(train_seed: int) -> int:
     return train_seed + 1_000_003
 
 
-def compare_with_random(env_cfg: EnvConfig, model: torch.nn.Module, num_episodes: int = 8,
+def compare_with_random(train_env: EnvConfig, model: torch.nn.Module, num_episodes: int = 8,
                         seed: int = 12345) -> Dict[str, float]:
-    """``eval/*`` (trained, mean actions) and ``eval_random/*`` metrics on the same episodes."""
+    """``eval/*`` (trained, mean actions) and ``eval_random/*`` metrics on the same episodes, flown in
+    ``evaluation_env(train_env)`` (the training aids off), as the command line flies them."""
+    env_cfg = evaluation_env(train_env)
     out = summarize(run_episodes(env_cfg, model_policy(model), num_episodes, seed), "eval")
     out.update(summarize(run_episodes(env_cfg, random_policy(seed), num_episodes, seed), "eval_random"))
     if out.get("eval_random/dist"):
@@ -243,7 +274,7 @@ def resolve_scenarios(text: str, num_agents: Sequence[int]) -> List[str]:
 
 
 def eval_env(spec: PolicySpec, num_agents: int, scenario: str) -> EnvConfig:
-    return dataclasses.replace(spec.env, num_agents=num_agents, scenario=scenario)
+    return evaluation_env(spec.env, num_agents, scenario)
 
 
 def check_layouts(specs: Sequence[PolicySpec], num_agents: Sequence[int], scenarios: Sequence[str]) -> None:

@@ -38,18 +38,26 @@ METRICS: Dict[str, str] = {
     # reward/: what the policy is paid for (quad_env.REWARD_TERMS)
     **{f"reward/{term}": f"per-agent episode sum of the reward term {term!r} (env.reward.{term} sets its weight)"
        for term in REWARD_TERMS},
-    # eval/, eval_random/: end-of-run evaluation (mean actions vs uniformly random actions, same episodes)
-    "eval/reward": "mean per-agent episode reward of the trained policy (mean actions)",
+    # eval/, eval_random/: end-of-run evaluation (mean actions vs uniformly random actions, same episodes), in
+    # the training environment without its training aids (swarm_appo.evaluate.evaluation_env); each is the
+    # episode mean of a column of the evaluation tables (swarm_appo.evaluate.SUMMARY_METRICS)
+    "eval/reward": "Rew: mean per-agent episode reward of the paper's terms c1..c5 (pos, collision, proximity, "
+                   "omega, action), trained policy (mean actions)",
+    "eval/reward_shaping": "per-agent episode sum of the shaping terms (floor, tilt, crash), not in eval/reward",
     "eval/dist": "mean distance to goal over the last 5 s of the episode, trained policy (m)",
     "eval/dist_final": "mean distance to goal at the end of the episode, trained policy (m)",
-    "eval/collisions": "drone-drone collisions per episode after the 1.5 s grace period, trained policy",
-    "eval/success_rate": "Suc: share of drones that reached their goal and had no collision after the grace period",
+    "eval/collisions": "Col: new contacts per episode after the 1.5 s grace period with other drones (pairs), "
+                       "obstacles and the room (floor, walls, ceiling), trained policy",
+    "eval/collisions_drone": "ColD: new drone-drone contacts (pairs) per episode after the grace period",
+    "eval/success_rate": "Suc: share of drones within 0.5 m of their goal during the whole last 1 s of the episode "
+                         "and without a collision after the grace period",
+    "eval/reached_rate": "share of drones that came within 0.5 m of their goal at some time (when the episode "
+                         "stats carry reached_rate)",
     "eval/inter_collision_rate": "IColR: share of drones with a drone-drone collision after the grace period",
-    "eval_random/success_rate": "the same for random actions",
-    "eval_random/inter_collision_rate": "the same for random actions",
     "eval/dist_ratio_to_random": "eval/dist divided by eval_random/dist (learning shows as < 1; quickstart target <= 0.5)",
-    "eval_random/reward": "the same for uniformly random actions", "eval_random/dist": "the same for random actions",
-    "eval_random/dist_final": "the same for random actions", "eval_random/collisions": "the same for random actions",
+    **{f"eval_random/{name}": "the same for uniformly random actions"
+       for name in ("reward", "reward_shaping", "dist", "dist_final", "collisions", "collisions_drone",
+                    "success_rate", "reached_rate", "inter_collision_rate")},
     # charts/: training progress
     "charts/episode_reward": "mean return per drone of the episodes that ended since the last record",
     "charts/episode_length": "mean length (control steps) of those episodes",
@@ -59,8 +67,10 @@ METRICS: Dict[str, str] = {
     # swarm/: the paper's evaluation metrics, also per scenario as swarm/<scenario>/<name> (swarm_metric)
     "swarm/dist": "Dist: mean distance of a drone to its goal over the last 5 s of the episode (m)",
     "swarm/dist_final": "mean distance of a drone to its goal at the end of the episode (m)",
-    "swarm/collisions": "Col: new drone-drone contacts per episode after the 1.5 s grace period",
-    "swarm/success_rate": "Suc: share of drones that reached their goal and had no drone-drone contact after the grace period (0-1)",
+    "swarm/collisions": "new drone-drone (pairs) and drone-obstacle contacts per episode after the 1.5 s grace period "
+                        "(the evaluation's Col adds swarm/room_contacts)",
+    "swarm/success_rate": "Suc: share of drones within 0.5 m of their goal during the whole last 1 s of the episode "
+                          "and without a collision after the grace period (0-1)",
     "swarm/inter_collision_rate": "IColR: share of drones with a drone-drone contact after the grace period",
     "swarm/room_contacts": "new floor/wall/ceiling contacts per episode after the grace period",
     # losses/: the learner (means over the minibatches of one learner iteration)

@@ -11,7 +11,6 @@ are checkpointed atomically, so a run killed at any moment resumes from its last
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import random
@@ -24,7 +23,7 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 import torch
 
-from quad_env import REWARD_TERMS, EnvConfig, VecQuadEnv
+from quad_env import REWARD_TERMS, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
 from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
@@ -98,11 +97,6 @@ def max_fragments_in_flight(cfg: TrainConfig, num_workers: int) -> int:
 SWARM_METRICS = (("dist", "dist_last_5s"), ("dist_final", "dist_final"), ("collisions", "collisions_after_grace"),
                  ("success_rate", "success_rate"), ("inter_collision_rate", "inter_collision_rate"),
                  ("room_contacts", "room_contacts_after_grace"))
-
-
-def evaluation_env(env: EnvConfig) -> EnvConfig:
-    """The environment a policy is judged in: the training one without the training aids (respawn)."""
-    return dataclasses.replace(env, respawn_on_floor=False)
 
 
 def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
@@ -331,7 +325,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
         bar.close()
     final_eval: Dict[str, float] = {}
     if cfg.runner.final_eval_episodes > 0 and not interrupted:
-        final_eval = compare_with_random(evaluation_env(cfg.env), learner.model, cfg.runner.final_eval_episodes,
+        # in swarm_appo.evaluate.evaluation_env(cfg.env): the training aids off, as the command line evaluates
+        final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
                                          seed=default_eval_seed(cfg.runner.seed))
         logger.log(agent_steps, final_eval)
     logger.close()

@@ -120,6 +120,14 @@ def test_standard_names_are_grouped():
     assert stats["system/max_rss_mb"] > 1.0 and all(k.startswith("system/") for k in stats)
 
 
+def test_every_end_of_run_evaluation_metric_is_documented():
+    from swarm_appo.evaluate import SUMMARY_METRICS
+
+    names = {f"{prefix}/{name}" for name in SUMMARY_METRICS for prefix in ("eval", "eval_random")}
+    assert names <= set(METRICS), sorted(names - set(METRICS))
+    assert "eval/collisions_drone" in names and "eval/reward_shaping" in names
+
+
 def test_lag_stats_match_numpy():
     rng = np.random.default_rng(0)
     chunks = [rng.integers(0, 20, size=(8, 5)), rng.integers(3, 40, size=7), torch.tensor([[2, 50], [1, 0]])]
