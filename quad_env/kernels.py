@@ -63,15 +63,17 @@ ACC_OBST_GRACE = 21  # new drone-obstacle contacts (drones) after the grace peri
 ACC_RESPAWNS = 22  # drones respawned after touching the floor (env.respawn_on_floor)
 NUM_ACC = 23
 
-# Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success and IColR metrics.
-SUCCESS_WINDOW = 5  # a drone has reached its goal when its mean distance over this many steps ...
-SUCCESS_RADIUS = 0.5  # ... is below this (m)
+# Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success, reached and IColR metrics.
+SUCCESS_RADIUS = 0.5  # m: success = within this of the goal at every step of the last SUCCESS_HOLD_S ...
+SUCCESS_HOLD_S = 1.0  # ... seconds of the episode (the whole episode if shorter); see VecQuadEnv.episode_stats
+SUCCESS_WINDOW = 5  # "reached" (the earlier success): the mean distance over this many steps < SUCCESS_RADIUS
 AG_RING = 0  # SUCCESS_WINDOW columns: the latest distances to goal (ring buffer)
 AG_SINCE_JUMP = 5  # steps recorded since the last goal jump (or the episode start)
 AG_REACHED = 6  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
 AG_COLL_GRACE = 7  # new drone-drone contacts of this drone after the grace period
 AG_OBST_GRACE = 8  # new drone-obstacle contacts of this drone after the grace period
-NUM_AGENT_ACC = 9
+AG_LAST_OUT = 9  # the last control step (episode clock) after which the drone was >= SUCCESS_RADIUS from its goal; 0: never
+NUM_AGENT_ACC = 10
 
 # advance_drone's return value: what the drone touched during the control step (bit flags).
 TOUCHED_ROOM = 1
@@ -683,11 +685,15 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, pro
 
 # ====================================================================== episode metrics
 @njit(cache=True)
-def agent_metrics(e, pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents):
-    """Per-drone success bookkeeping of swarm ``e`` after a step: the distance to goal enters a ring of the
-    last SUCCESS_WINDOW steps; once the ring holds that many steps since the last goal jump and their mean
-    is below SUCCESS_RADIUS, the drone has reached its goal. A jump (``jumped[e]``) empties the rings and
-    clears "reached". New drone-drone and drone-obstacle contacts after the grace period are counted per drone."""
+def agent_metrics(e, step, pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents):
+    """Per-drone success bookkeeping of swarm ``e`` after its control step number ``step`` (episode clock).
+
+    Success: a drone at SUCCESS_RADIUS or farther from its goal records ``step`` as its last step outside
+    (AG_LAST_OUT); ``VecQuadEnv.episode_stats`` compares it with the start of the last SUCCESS_HOLD_S.
+    Reached (the earlier success): the distance to goal enters a ring of the last SUCCESS_WINDOW steps; once
+    the ring holds that many steps since the last goal jump and their mean is below SUCCESS_RADIUS, the drone
+    has reached its goal. A jump (``jumped[e]``) empties the rings and clears "reached". New drone-drone and
+    drone-obstacle contacts after the grace period are counted per drone."""
     base = e * n_agents
     if jumped[e] != 0:
         for a in range(n_agents):
@@ -698,7 +704,10 @@ def agent_metrics(e, pos, goal, new_coll, new_obst, after_grace, jumped, agent_a
         i = base + a
         dx, dy, dz = pos[i, 0] - goal[i, 0], pos[i, 1] - goal[i, 1], pos[i, 2] - goal[i, 2]
         since = int(agent_acc[i, AG_SINCE_JUMP])
-        agent_acc[i, AG_RING + since % SUCCESS_WINDOW] = np.sqrt(dx * dx + dy * dy + dz * dz)
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if not dist < SUCCESS_RADIUS:
+            agent_acc[i, AG_LAST_OUT] = step
+        agent_acc[i, AG_RING + since % SUCCESS_WINDOW] = dist
         since += 1
         agent_acc[i, AG_SINCE_JUMP] = since
         if since >= SUCCESS_WINDOW:
@@ -738,8 +747,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     state became non-finite: that swarm's observation rows keep the previous step's values, its reward
     rows are 0, and it is reported done; the caller decides (raise or reset).
     Episode metrics go to ``acc [E, NUM_ACC]`` and ``agent_acc [M, NUM_AGENT_ACC]``; ``jumped[e] = 1``
-    (set by the scenario: the goals jumped before this step) restarts the swarm's success windows and is
-    cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_index`` their lookup index
+    (set by the scenario: the goals jumped before this step) restarts the swarm's "reached" windows and
+    is cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_index`` their lookup index
     (``quad_env.obstacles.index_obstacles``), ``obst_contact`` [M] the drones touching one.
     """
     n_agents = ip[I_N]
@@ -814,7 +823,7 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
             acc[e, ACC_TAIL1_STEPS] += 1.0
         if after_grace:
             acc[e, ACC_COLL_GRACE] += n_new
-        agent_metrics(e, pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents)
+        agent_metrics(e, step_count[e], pos, goal, new_coll, new_obst, after_grace, jumped, agent_acc, n_agents)
         if done[e]:
             n_done += 1
     return n_done

@@ -39,8 +39,8 @@ from quad_env.config import EnvConfig
 from quad_env.kernels import (
     ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_OBST,
     ACC_OBST_GRACE, ACC_RESPAWNS, ACC_RETURN, ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS,
-    ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE, AG_OBST_GRACE, AG_REACHED, NUM_ACC, NUM_AGENT_ACC, all_finite,
-    observe_kernel, refresh_contacts_kernel, respawn_kernel, spawn_kernel, step_with_metrics_kernel,
+    ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE, AG_LAST_OUT, AG_OBST_GRACE, AG_REACHED, NUM_ACC, NUM_AGENT_ACC,
+    SUCCESS_HOLD_S, all_finite, observe_kernel, refresh_contacts_kernel, respawn_kernel, spawn_kernel, step_with_metrics_kernel,
 )
 from quad_env.obstacles import (
     INDEX_SLOTS, OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin, index_obstacles, index_spec,
@@ -143,6 +143,7 @@ class VecQuadEnv:
                                         cfg.replay_prob) if cfg.replay_prob > 0 else None)
         self._replayed_name: List[Optional[str]] = [None] * E  # scenario name of a replayed episode
         self._everyone = np.ones(E, bool)
+        self._hold_steps = max(1, int(round(SUCCESS_HOLD_S / cfg.control_dt)))  # success: the last 1 s
         self.reset()
 
     # ------------------------------------------------------------------ public buffers
@@ -210,16 +211,19 @@ class VecQuadEnv:
         ``collisions`` (new drone-drone contacts, pairs); ``room_contacts`` (new floor/wall/ceiling
         contacts, drones); ``collisions_after_grace``, ``room_contacts_after_grace`` (the same, counted
         only after the first 1.5 s); ``inter_collision_rate`` (share of drones with at least one new
-        drone-drone contact after the grace period); ``success_rate`` (share of drones that reached their
-        goal -- mean distance over 5 consecutive steps < 0.5 m at some step after the last goal jump --
-        and had no drone-drone contact after the grace period); ``agent_success``, ``agent_collided``
-        (bool [N]: the same per drone); ``rew_<term>`` (per-term episode reward, mean per agent: they sum
+        drone-drone contact after the grace period); ``success_rate`` (the paper's Suc: share of drones
+        that were within 0.5 m of their goal after every control step of the episode's last 1 s, or of the
+        whole episode if it is shorter, and had no drone-drone contact after the grace period);
+        ``reached_rate`` (the earlier success: share of drones that reached their goal -- mean distance over
+        5 consecutive steps < 0.5 m at some step after the last goal jump -- and had no drone-drone contact
+        after the grace period); ``agent_success``, ``agent_reached``, ``agent_collided`` (bool [N]: the same
+        per drone); ``rew_<term>`` (per-term episode reward, mean per agent: they sum
         to ``return``); ``diverged`` (the episode ended on a non-finite state).
         With obstacles, ``collisions`` and ``collisions_after_grace`` count drone-drone contacts (pairs) plus
         new drone-obstacle contacts (drones): the paper's Col; ``obstacle_collisions`` and
         ``obstacle_collisions_after_grace`` count the latter alone, ``agent_hit_obstacle`` (bool [N]) marks
-        the drones with one after the grace period, and success also needs no obstacle contact after the
-        grace period (``inter_collision_rate`` stays drone-drone only). ``replayed``: the episode restarted
+        the drones with one after the grace period, and success and reached also need no obstacle contact
+        after the grace period (``inter_collision_rate`` stays drone-drone only). ``replayed``: the episode restarted
         from a stored pre-collision state (``env.replay_prob``); ``respawns``: drones put back in the air by
         ``env.respawn_on_floor``.
         """
@@ -450,12 +454,17 @@ class VecQuadEnv:
             self._needs_reset |= done
 
     def episode_stats(self, e: int) -> dict:
-        """Stats of swarm ``e``'s episode so far (the dict ``pop_episode_stats`` returns at its end)."""
+        """Stats of swarm ``e``'s episode so far (the dict ``pop_episode_stats`` returns at its end; mid-episode,
+        success looks at the last 1 s so far)."""
         acc, N = self._acc[e], self.num_agents
         agents = self._agent_acc[e * N:(e + 1) * N]
         collided = agents[:, AG_COLL_GRACE] > 0  # [N] drone-drone
         hit_obstacle = agents[:, AG_OBST_GRACE] > 0  # [N]
-        success = (agents[:, AG_REACHED] > 0) & ~collided & ~hit_obstacle  # [N]
+        clean = ~collided & ~hit_obstacle  # [N]
+        n_steps = int(self._step_count[e])
+        hold_start = max(n_steps - self._hold_steps, 0)  # the hold covers steps hold_start + 1 .. n_steps
+        success = (agents[:, AG_LAST_OUT] <= hold_start) & clean & (n_steps > 0)  # [N]
+        reached = (agents[:, AG_REACHED] > 0) & clean  # [N]
         mean_of = lambda total, steps: total / steps if steps > 0 else float("nan")  # noqa: E731
         stats = {
             "scenario": self._episode_name(e),
@@ -473,7 +482,9 @@ class VecQuadEnv:
             "room_contacts_after_grace": int(acc[ACC_ROOM_GRACE]),
             "inter_collision_rate": float(collided.mean()),
             "success_rate": float(success.mean()),
+            "reached_rate": float(reached.mean()),
             "agent_success": success.copy(),
+            "agent_reached": reached.copy(),
             "agent_collided": collided.copy(),
             "agent_hit_obstacle": hit_obstacle.copy(),
             "diverged": bool(self._diverged[e]),
