@@ -12,6 +12,7 @@ from quad_env.obs_layout import ObsLayout
 
 SIM_DTYPES = ("float32", "float64")
 NAN_POLICIES = ("raise", "reset")
+COLLISION_FORMS = ("paper", "pairwise")
 
 
 @dataclass
@@ -21,9 +22,17 @@ class RewardConfig:
     pos: float = 0.5
     """c1: weight of -||x_i - x_i^d|| (times dt)."""
     collision: float = 5.0
-    """c2: penalty per *new* drone-drone contact (not times dt); drone-obstacle contacts: ``obstacle_collision``."""
+    """c2: drone-drone collision penalty (not times dt), charged as ``collision_form`` says; drone-obstacle
+    contacts: ``obstacle_collision``."""
     proximity: float = 5.0
-    """c3: weight of -sum_j [1 - ||x_i - x_j|| / d_p]_+ (times dt)."""
+    """c3: weight of -sum_j [1 - ||x_i - x_j|| / d_p]_+ (times dt), j over the drones ``collision_form`` says."""
+    collision_form: str = "paper"
+    """How c2 and c3 are charged. "paper" (the paper's R^c): c2 once when drone i goes from touching no drone
+    to touching some drone (within ``physics.collision_dist``; touching a second drone while still touching
+    one costs nothing), and the c3 sum runs over drone i's neighbourhood N_i, the K nearest drones within
+    ``sensing_radius`` that fill its observation's neighbour slots (none when ``num_neighbors`` = 0).
+    "pairwise" (this project's earlier reward): c2 per new touching pair (a drone hitting two drones at once
+    pays twice), and the c3 sum runs over every other drone of the swarm."""
     proximity_dist: float = 0.184
     """d_p in metres: the smooth proximity penalty starts below this centre distance (2 x collision distance)."""
     omega: float = 0.01
@@ -247,6 +256,9 @@ class EnvConfig:
                      "obstacle_collision"):
             if not getattr(self.reward, name) >= 0:
                 raise ValueError(f"env.reward.{name} must be >= 0, got {getattr(self.reward, name)!r}")
+        if self.reward.collision_form not in COLLISION_FORMS:
+            raise ValueError(f"env.reward.collision_form must be one of {list(COLLISION_FORMS)}, "
+                             f"got {self.reward.collision_form!r}")
         if not self.reward.proximity_dist > 0:
             raise ValueError(f"env.reward.proximity_dist must be > 0, got {self.reward.proximity_dist!r}")
         self.physics.validate()

@@ -22,7 +22,9 @@ One control step of one swarm (``step_kernel``):
      cylinders);
   2. every 50th step (config): re-orthonormalise the rotations;
   3. one pass over pairs a < b: new contacts, collision response, proximity sums, downwash impulses;
-  4. one pass over drones: K nearest neighbours (partial selection), observation row and reward terms.
+  4. one pass over drones: K nearest neighbours (partial selection), observation row and reward terms
+     (``reward.collision_form``: "paper" charges c2 once per drone entering contact and sums c3 over the
+     K observed neighbours; "pairwise" charges c2 per new pair and sums c3 over every other drone).
 Pair effects (collisions, downwash) act once per control step, as in the QuadSwarm simulator; the
 downwash is an impulse ``a * control_dt``.
 """
@@ -38,6 +40,7 @@ from quad_env.params import (
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
     I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
     I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
+    COLL_FORM_PAPER, I_COLL_FORM,
     F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
     SDF_SPACING,
 )
@@ -335,13 +338,17 @@ def _squared_distances(a, first, n_agents, px, py, pz, row):
 
 
 @njit(cache=True)
-def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, px, py, pz, row):
+def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, coll_pen, touch, prox, px, py, pz, row):
     """Collisions, proximity and downwash over every pair a < b of swarm ``e``.
 
-    Writes ``new_coll [N]`` (new contacts of each drone) and ``prox [N]`` (sum_j [1 - d/d_p]_+), and
+    Writes ``new_coll [N]`` (new contacts of each drone: touching pairs that were not touching at the last
+    step), ``coll_pen [N]`` (what the c2 penalty multiplies: ``new_coll`` in the "pairwise" collision form;
+    in the "paper" form 1 if the drone touches some drone now and touched none at the last step, else 0)
+    and ``prox [N]`` (sum over every other drone j of [1 - d/d_p]_+: the "pairwise" proximity sum), and
     updates velocities (collision response, downwash) and body rates (collision kick). Returns the
     number of new contacts (pairs). ``px, py, pz`` hold the swarm's positions (``gather_positions``);
-    ``row`` is scratch. Squared distances of a row of pairs are computed in one vectorised loop; only
+    ``row`` (float [N]) and ``touch`` (uint8 [N]: bit 1 touched a drone at the last step, bit 2 touches one now)
+    are scratch. Squared distances of a row of pairs are computed in one vectorised loop; only
     pairs within reach of an effect (or still marked touching) take the slow path.
 
     Collision response of a touching pair that approaches along the unit normal n: the normal velocity
@@ -371,6 +378,7 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
     for a in range(n_agents):
         new_coll[a] = 0.0
         prox[a] = 0.0
+        touch[a] = 0
     for a in range(n_agents):
         i = base + a
         _squared_distances(a, a + 1, n_agents, px, py, pz, row)
@@ -386,7 +394,12 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
                 pen = 1.0 - np.sqrt(d2) / dp
                 prox[a] += pen
                 prox[b] += pen
+            if contact[e, a, b] != 0:
+                touch[a] |= 1
+                touch[b] |= 1
             if d2 <= cd2:
+                touch[a] |= 2
+                touch[b] |= 2
                 if contact[e, a, b] == 0:
                     contact[e, a, b] = 1
                     new_coll[a] += 1.0
@@ -435,6 +448,12 @@ def pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, 
                     vel[i, 0] -= dv * rot[j, 0, 2]
                     vel[i, 1] -= dv * rot[j, 1, 2]
                     vel[i, 2] -= dv * rot[j, 2, 2]
+    paper = ip[I_COLL_FORM] == COLL_FORM_PAPER
+    for a in range(n_agents):
+        if paper:
+            coll_pen[a] = 1.0 if touch[a] == 2 else 0.0  # touches a drone now, touched none before
+        else:
+            coll_pen[a] = new_coll[a]
     return count
 
 
@@ -537,7 +556,7 @@ def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
 
 
 @njit(cache=True)
-def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, d2row, rng, fp, ip,
+def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, prox, px, py, pz, d2row, rng, fp, ip,
                   obs, rew, terms, nb_idx, nb_d2, with_reward, obst, obst_index):
     """Observation rows (and, if ``with_reward``, reward terms) of every drone of swarm ``e``.
 
@@ -547,7 +566,10 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, pro
     typical), never sorting all N.
     Slots beyond the real neighbours or the sensing radius are zero with mask 0. With obstacles on, the
     obstacle field (``obstacle_field``, no sensor noise) ends the row.
-    ``new_coll``, ``new_obst`` [N]: new drone-drone and drone-obstacle contacts of each drone (rewards).
+    Rewards: ``coll_pen`` [N] multiplies c2 (``pair_effects``), ``new_obst`` [N] (new drone-obstacle contacts)
+    the obstacle penalty; the proximity sum is ``prox`` [N] (every other drone) in the "pairwise" collision form
+    and, in the "paper" form, runs over the drone's neighbours found here (the K nearest within the sensing
+    radius: the drones in its observation's neighbour slots).
     Returns the swarm's mean distance to goal.
     """
     n_agents = ip[I_N]
@@ -566,6 +588,9 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, pro
     c_obst = fp[F_C_OBST]
     use_obst = ip[I_OBSTACLES] != 0
     field_start = mask_start + k_slots
+    prox_nb = ip[I_COLL_FORM] == COLL_FORM_PAPER  # proximity over the observed neighbours only
+    dp = fp[F_PROX_DIST]
+    dp2 = dp * dp
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -666,8 +691,15 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, pro
             u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
             u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
             r_pos = -c_pos * dist
-            r_coll = -c_coll * new_coll[a] - c_obst * new_obst[a]
-            r_prox = -c_prox * prox[a]
+            r_coll = -c_coll * coll_pen[a] - c_obst * new_obst[a]
+            if prox_nb:
+                near = 0.0
+                for k in range(found):
+                    if nb_d2[k] < dp2:
+                        near += 1.0 - np.sqrt(nb_d2[k]) / dp
+                r_prox = -c_prox * near
+            else:
+                r_prox = -c_prox * prox[a]
             r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
             r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
             r_floor = -c_floor if zi <= floor_z else 0.0
@@ -757,6 +789,8 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
     nb_idx = np.zeros(max(k_slots, 1), np.int64)
     nb_d2 = np.zeros(max(k_slots, 1), np.float64)
     new_coll = np.zeros(n_agents, np.float64)
+    coll_pen = np.zeros(n_agents, np.float64)
+    touch = np.zeros(n_agents, np.uint8)
     new_obst = np.zeros(n_agents, np.float64)  # (stays 0 without obstacles)
     use_obst = ip[I_OBSTACLES] != 0
     prox = np.zeros(n_agents, np.float64)
@@ -801,9 +835,10 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
             n_done += 1
             continue
         gather_positions(e, pos, n_agents, px, py, pz)
-        n_new = pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, prox, px, py, pz, row)
+        n_new = pair_effects(e, pos, vel, rot, omega, contact, rng, fp, ip, new_coll, coll_pen, touch, prox, px, py,
+                             pz, row)
         acc[e, ACC_COLLISIONS] += n_new
-        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, new_coll, new_obst, prox, px, py, pz, row,
+        mean_dist = observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, prox, px, py, pz, row,
                                   rng, fp, ip, obs, rew, terms, nb_idx, nb_d2, True, obst, obst_index)
         # ---- episode statistics
         for a in range(n_agents):

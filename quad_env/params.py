@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from quad_env.config import EnvConfig
+from quad_env.config import COLLISION_FORMS, EnvConfig
 from quad_env.obstacles import lookup_pad
 
 # ---------------------------------------------------------------- float parameters (float64 [NUM_F])
@@ -77,7 +77,11 @@ I_GRACE_STEPS = 15  # collisions in the first this many control steps (1.5 s) do
 I_OBSTACLES = 16  # 1: cylinders (physics, contacts, obstacle field)
 I_OBST_CELLS = 17  # cells per side of the obstacle grid
 I_OBST_LOOKUP = 18  # cells per side of the lookup grid (quad_env.obstacles.index_obstacles)
-NUM_I = 19
+I_COLL_FORM = 19  # reward.collision_form: COLL_FORM_PAPER or COLL_FORM_PAIRWISE
+NUM_I = 20
+
+COLL_FORM_PAPER = 0  # c2 once per drone entering contact, c3 over the observed neighbours
+COLL_FORM_PAIRWISE = 1  # c2 per new touching pair, c3 over every other drone
 
 METRIC_GRACE_S = 1.5  # grace period of the collision metrics, s
 SDF_SPACING = 0.1  # the obstacle field samples a 3 x 3 horizontal grid this far apart (m) around the drone
@@ -158,4 +162,5 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     i[I_OBSTACLES] = int(cfg.obstacles)
     i[I_OBST_CELLS] = cfg.obstacle_grid_cells
     i[I_OBST_LOOKUP] = cfg.obstacle_grid_cells + 2 * lookup_pad(cfg)
+    i[I_COLL_FORM] = COLLISION_FORMS.index(r.collision_form)  # (the order of COLL_FORM_PAPER, COLL_FORM_PAIRWISE)
     return f, i

@@ -76,6 +76,12 @@ def reference_push_out(pos: np.ndarray, vel: np.ndarray, axes: np.ndarray, cfg: 
     return touch
 
 
+def touching_drones(contact: np.ndarray) -> np.ndarray:
+    """Pair contact memory [E, N, N] (pairs a < b) -> bool [E, N]: the drones touching some drone."""
+    pairs = (contact != 0) & np.triu(np.ones(contact.shape[1:], bool), 1)
+    return pairs.any(2) | pairs.any(1)
+
+
 def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvConfig, step_count: np.ndarray,
                    contact: np.ndarray) -> Tuple[Dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray,
                                                  np.ndarray]:
@@ -163,6 +169,7 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
             rot[e * N:(e + 1) * N] = 1.5 * R - 0.5 * R @ np.swapaxes(R, 1, 2) @ R
 
     # ---- pair effects, in the kernel's order (a < b), since collision responses compound
+    touched_before = touching_drones(contact)  # [E, N]
     contact = contact.copy()
     new_coll = np.zeros(M)
     prox = np.zeros(M)
@@ -192,6 +199,8 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
                         if 0 < depth < p.downwash_length and radial2 < p.downwash_radius ** 2:
                             vel[down] -= p.downwash_accel * (1 - depth / p.downwash_length) * ctrl_dt * axis
 
+    entered_contact = (touching_drones(contact) & ~touched_before).reshape(M)  # the paper's c2 indicator
+
     # ---- observations
     nb_dim = 21 if cfg.neighbor_obs == "full" else 6
     D = 18 + K * (nb_dim + 1) + (9 if cfg.obstacles else 0)
@@ -207,6 +216,7 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
     obs[:, 6:15] = rot.reshape(M, 9)
     obs[:, 15:18] = omega
     sense = np.inf if cfg.sensing_radius is None else cfg.sensing_radius
+    prox_neighbours = np.zeros(M)  # the paper's c3 sum: over the observed neighbours only
     for e in range(E):
         idx = np.arange(e * N, (e + 1) * N)
         for a in range(N):
@@ -215,6 +225,8 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
             d2 = ((pos[others] - pos[i]) ** 2).sum(1)
             order = np.lexsort((others, d2))  # by distance, then by index
             chosen = [others[o] for o in order[:K] if d2[o] <= sense ** 2]
+            for j in chosen:
+                prox_neighbours[i] += max(0.0, 1 - np.linalg.norm(pos[j] - pos[i]) / rc.proximity_dist)
             for k, j in enumerate(chosen):
                 off = 18 + k * nb_dim
                 block = [pos[j] - pos[i], vel[j] - vel[i]]
@@ -224,10 +236,11 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
                 obs[i, 18 + K * nb_dim + k] = 1.0
 
     # ---- reward terms
+    paper = rc.collision_form == "paper"
     terms = np.stack([
         -rc.pos * ctrl_dt * np.linalg.norm(pos - goal, axis=1),
-        -rc.collision * new_coll - rc.obstacle_collision * new_obstacle,
-        -rc.proximity * ctrl_dt * prox,
+        -rc.collision * (entered_contact if paper else new_coll) - rc.obstacle_collision * new_obstacle,
+        -rc.proximity * ctrl_dt * (prox_neighbours if paper else prox),
         -rc.omega * ctrl_dt * np.linalg.norm(omega, axis=1),
         -rc.action * ctrl_dt * np.linalg.norm(u, axis=1),
         -rc.floor * ctrl_dt * (pos[:, 2] <= p.floor_z),

@@ -18,6 +18,7 @@ def test_nested_sections_accept_dicts():
     (dict(episode_duration=0.001), "env.episode_duration"),
     (dict(reward={"collision": -1.0}), "env.reward.collision"),
     (dict(reward={"proximity_dist": 0.0}), "env.reward.proximity_dist"),
+    (dict(reward={"collision_form": "per_pair"}), "env.reward.collision_form"),
     (dict(physics={"inertia": (1.0, 2.0)}), "env.physics.inertia"),
     (dict(physics={"wall_restitution": 1.5}), "env.physics.wall_restitution"),
     (dict(physics={"reortho_interval": 0}), "env.physics.reortho_interval"),
@@ -38,3 +39,10 @@ def test_packed_parameters():
     assert i[I_TAIL_STEPS] == 300  # episode shorter than 5 s: the whole episode
     _, quiet = pack_params(cfg, obs_dim=150, noise=False)
     assert i[I_THRUST_NOISE] == 1 and quiet[I_THRUST_NOISE] == 0 and quiet[I_COLL_KICK] == 0
+
+
+def test_collision_form_default_and_valid_values():
+    assert RewardConfig().collision_form == "paper"
+    with pytest.raises(ValueError, match=r"\['paper', 'pairwise'\], got 'Paper'"):
+        EnvConfig(reward={"collision_form": "Paper"}).validate()
+    EnvConfig(reward={"collision_form": "pairwise"}).validate()

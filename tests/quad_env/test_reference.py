@@ -1,4 +1,5 @@
-"""The numba step kernel equals the plain-numpy float64 reference on random states (noise off)."""
+"""The numba step kernel equals the plain-numpy float64 reference on random states (noise off), in both
+collision forms of the reward."""
 import numpy as np
 import pytest
 
@@ -56,19 +57,30 @@ CASES = [
 ]
 
 
+def other_form(case, form):
+    return {**case, "reward": {**case.get("reward", {}), "collision_form": form}}
+
+
+@pytest.mark.parametrize("form", ["paper", "pairwise"])
 @pytest.mark.parametrize("case", CASES)
 @pytest.mark.parametrize("steps_done", [0, 49])  # 49: this step re-orthonormalises (every 50)
-def test_kernel_matches_numpy_reference(quiet_cfg, case, steps_done):
+def test_kernel_matches_numpy_reference(quiet_cfg, case, steps_done, form):
+    case = other_form(case, form)
     cfg = quiet_cfg(**case)
-    E = 3
+    E, N = 3, cfg.num_agents
     env = VecQuadEnv(cfg, num_envs=E, seed=0)
     rng = np.random.default_rng(steps_done + len(case))
-    events = dict(collisions=0, floor=0, clipped=0, downwash=0)
+    events = dict(collisions=0, floor=0, clipped=0, downwash=0, forms_differ=0, touching_before=0)
     for trial in range(4):
-        state = random_state(rng, E, cfg.num_agents)
+        state = random_state(rng, E, N)
         actions = rng.uniform(-1.3, 1.3, (env.num_drones, 4))
         step_count = np.full(E, steps_done, np.int64)
-        contact = np.zeros((E, cfg.num_agents, cfg.num_agents), np.uint8)
+        # contact memory: none on even trials; on odd ones random pairs, among them the touching pair (0, 1)
+        # of some swarms (a drone already touching one that touches another: no new charge in the paper's form)
+        contact = np.zeros((E, N, N), np.uint8)
+        if trial % 2:
+            contact[:] = np.triu(rng.uniform(size=(E, N, N)) < 0.4, 1)
+            events["touching_before"] += int(contact[:, 0, 1].sum())
         ks, kobs, krew, kterms, kcontact = kernel_step(env, state, actions, step_count, contact)
         rs, robs, rrew, rterms, rcontact = reference_step(state, actions, cfg, step_count, contact)
         for name in ("pos", "vel", "rot", "omega", "motor"):
@@ -78,6 +90,9 @@ def test_kernel_matches_numpy_reference(quiet_cfg, case, steps_done):
         np.testing.assert_allclose(krew, rrew, rtol=0, atol=1e-9)
         np.testing.assert_array_equal(kcontact, rcontact)
         events["collisions"] += int((rterms[1] < 0).sum())
+        flipped = quiet_cfg(**other_form(case, "pairwise" if form == "paper" else "paper"))
+        events["forms_differ"] += int((np.abs(reference_step(state, actions, flipped, step_count, contact)[3]
+                                              - rterms)[1:3].max(0) > 1e-9).sum())
         events["floor"] += int((np.abs(rs["pos"][:, 2] - 0.046) < 1e-12).sum())
         events["clipped"] += int((np.abs(rs["omega"]) == 40.0).sum())
         if cfg.downwash:

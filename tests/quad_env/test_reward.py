@@ -1,4 +1,6 @@
-"""Reward terms on hand-computed cases; collisions are penalised once per contact."""
+"""Reward terms on hand-computed cases; collisions are penalised once per contact (per drone entering contact
+in the paper's collision form, per new pair in the "pairwise" one); the paper's proximity sum runs over the
+observed neighbours only."""
 import numpy as np
 import pytest
 
@@ -102,8 +104,9 @@ def test_lingering_contact_is_not_penalised_again(quiet_cfg):
     assert (hits == -5.0).sum(0).tolist() == [1, 1]
 
 
-def test_proximity_term_counts_every_close_drone(quiet_cfg):
-    env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0), num_envs=1, seed=0)
+def test_pairwise_proximity_term_counts_every_close_drone(quiet_cfg):
+    env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0, reward=dict(collision_form="pairwise")), num_envs=1,
+                     seed=0)
     env.set_state(pos=[[0, 0, 0.046], [0.1, 0, 0.046], [0, 0.15, 0.046]], vel=np.zeros((3, 3)),
                   rot=np.tile(np.eye(3), (3, 1, 1)), motor=np.zeros((3, 4)), goal=np.zeros((3, 3)))
     env.step(-np.ones((3, 4)))
@@ -111,3 +114,72 @@ def test_proximity_term_counts_every_close_drone(quiet_cfg):
     pen = lambda d: max(0.0, 1 - d / 0.184)  # noqa: E731
     expected = -5 * DT * np.array([pen(0.1) + pen(0.15), pen(0.1) + pen(d12), pen(0.15) + pen(d12)])
     np.testing.assert_allclose(env.reward_terms["proximity"], expected, rtol=1e-6)
+
+
+def hover_swarm(quiet_cfg, form, pos, vel, num_neighbors=2):
+    """Level drones at ``pos`` with velocities ``vel``, motors at hover, goals where they are."""
+    n = len(pos)
+    cfg = quiet_cfg(num_agents=n, num_neighbors=num_neighbors, drag_coeff=0.0, downwash=False,
+                    physics=dict(collision_restitution=0.0), reward=dict(collision_form=form))
+    env = VecQuadEnv(cfg, num_envs=1, seed=0)
+    hover = 1 / 1.9
+    env.set_state(pos=pos, vel=vel, rot=np.tile(np.eye(3), (n, 1, 1)), omega=np.zeros((n, 3)),
+                  motor=np.full((n, 4), np.sqrt(hover)), goal=pos)
+    env.hover_action = np.full((n, 4), 2 * hover - 1)
+    return env
+
+
+@pytest.mark.parametrize("form,expected", [("paper", [-5.0, -5.0, -5.0]), ("pairwise", [-10.0, -5.0, -5.0])])
+def test_touching_two_drones_at_once(quiet_cfg, form, expected):
+    """Drones 1 and 2 fly into drone 0 from both sides and touch it in the same step: the paper charges c2
+    once per drone that enters contact, the pairwise form once per new pair (drone 0 is in two)."""
+    env = hover_swarm(quiet_cfg, form, pos=[[0, 0, 5], [0.1, 0, 5], [-0.1, 0, 5]],
+                      vel=[[0, 0, 0], [-2.0, 0, 0], [2.0, 0, 0]])
+    env.step(env.hover_action)
+    d = np.linalg.norm(env.get_state().pos[1:] - env.get_state().pos[0], axis=1)
+    assert (d <= 0.092).all()
+    np.testing.assert_allclose(env.reward_terms["collision"], expected)
+
+
+@pytest.mark.parametrize("form,expected", [("paper", [0.0, 0.0, -5.0]), ("pairwise", [-5.0, 0.0, -5.0])])
+def test_a_second_contact_while_touching(quiet_cfg, form, expected):
+    """Drone 0 already touches drone 1 (at rest, 0.05 m apart) when drone 2 flies into it: in the paper's form
+    drone 0's collision status does not change, so only drone 2 pays."""
+    env = hover_swarm(quiet_cfg, form, pos=[[0, 0, 5], [0.05, 0, 5], [-0.1, 0, 5]],
+                      vel=[[0, 0, 0], [0, 0, 0], [2.0, 0, 0]])
+    env.step(env.hover_action)
+    d = np.linalg.norm(env.get_state().pos[1:] - env.get_state().pos[0], axis=1)
+    assert (d <= 0.092).all()
+    np.testing.assert_allclose(env.reward_terms["collision"], expected)
+    env.step(env.hover_action)  # still touching both: nothing more in either form
+    np.testing.assert_allclose(env.reward_terms["collision"], 0.0)
+
+
+@pytest.mark.parametrize("form", ["paper", "pairwise"])
+@pytest.mark.parametrize("sensing_radius", [None, 0.13])
+def test_proximity_over_the_k_nearest_in_the_paper_form(quiet_cfg, form, sensing_radius):
+    """Four drones on the floor, all within d_p = 0.184 m of drone 0 and K = 2: in the paper's form each drone
+    sums over its 2 nearest drones within the sensing radius (its observed neighbours), in the pairwise
+    form over all of them."""
+    xy = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.12], [-0.135, 0.0]])
+    pos = np.concatenate([xy, np.full((4, 1), 0.046)], axis=1)
+    cfg = quiet_cfg(num_agents=4, num_neighbors=2, sensing_radius=sensing_radius,
+                    reward=dict(collision_form=form))
+    env = VecQuadEnv(cfg, num_envs=1, seed=0)
+    env.set_state(pos=pos, vel=np.zeros((4, 3)), rot=np.tile(np.eye(3), (4, 1, 1)), motor=np.zeros((4, 4)),
+                  goal=np.zeros((4, 3)))
+    env.step(-np.ones((4, 4)))
+    d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    pen = np.maximum(0.0, 1 - d / 0.184)
+    np.fill_diagonal(pen, 0.0)
+    assert (pen[0, 1:] > 0).all()  # drone 0 has 3 drones inside d_p, one more than K
+    if form == "pairwise":
+        expected = pen.sum(1)
+    else:
+        radius = np.inf if sensing_radius is None else sensing_radius
+        expected = np.zeros(4)
+        for i in range(4):
+            others = [j for j in np.argsort(d[i], kind="stable") if j != i][:2]
+            expected[i] = sum(pen[i, j] for j in others if d[i, j] <= radius)
+        assert expected[0] < pen[0].sum()
+    np.testing.assert_allclose(env.reward_terms["proximity"], -5 * DT * expected, rtol=1e-6)
