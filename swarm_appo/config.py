@@ -164,7 +164,8 @@ class RunnerConfig:
     name: Optional[str] = None
     """Run directory name under run_dir (also the wandb run name); None = a timestamp."""
     learner_threads: int = 0
-    """torch threads of the learner; 0 = all cores (rollout workers need little CPU when they wait on backpressure)."""
+    """torch threads of the learner; 0 = the cores left after the rollout workers on this machine (at least 1; all
+    cores in serial mode), so that learner threads + rollout workers never exceed the cores."""
     final_eval_episodes: int = 8
     """At the end of a run, evaluate the mean-action policy and a random policy on this many seeded
     episodes (``eval/*``, ``eval_random/*`` metrics); 0 = skip."""

@@ -89,6 +89,20 @@ def num_rollout_workers(cfg: TrainConfig) -> int:
     return max(1, (os.cpu_count() or 2) - 1)  # one core stays with the learner
 
 
+def learner_threads(cfg: TrainConfig, num_workers: int) -> int:
+    """runner.learner_threads, or 0 = the cores this machine has left after its rollout workers (at least 1):
+    learner threads + rollout workers never exceed the cores (oversubscribed, both slow down several-fold).
+    In serial mode the workers take turns with the learner, so it gets every core; on a cluster the workers are
+    spread over the nodes and this node keeps one core per worker it may host."""
+    if cfg.runner.learner_threads > 0:
+        return cfg.runner.learner_threads
+    cores = os.cpu_count() or 1
+    if cfg.runner.serial:
+        return cores
+    local_workers = num_workers if not on_cluster(cfg) else min(num_workers, cores - 1)
+    return max(1, cores - local_workers)
+
+
 def max_fragments_in_flight(cfg: TrainConfig, num_workers: int) -> int:
     return cfg.runner.max_fragments_in_flight or 2 * num_workers  # 0 = auto: one queued behind each running
 
@@ -166,7 +180,6 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     save_config(cfg, run_dir / "config.yaml")
 
     seed_everything(cfg.runner.seed)
-    torch.set_num_threads(cfg.runner.learner_threads or os.cpu_count() or 1)
     device = pick_device(cfg.runner.device)
     layout = cfg.env.obs_layout()
     make_model = model_factory(layout, cfg.model)
@@ -212,6 +225,9 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             log.info("learner on %s (%s); %d rollout workers on %d node(s), details in %s",
                      placement.learner["ip"], device, num_workers,
                      len({w["node_id"] for w in placement.workers}), run_dir / "cluster.json")
+    threads = learner_threads(cfg, num_workers)
+    torch.set_num_threads(threads)  # after the samplers: an in-process RolloutWorker sets 1 thread
+    log.info("learner: %d torch thread(s) on %s; %d rollout worker(s)", threads, device, num_workers)
     sampler.publish(*learner.cpu_weights())
 
     bar = None

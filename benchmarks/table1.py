@@ -1,0 +1,348 @@
+"""The paper's Table 1 on 2 cores: every row trained with ONE recipe, the same seeds and the same agent-step budget,
+then evaluated with ``swarm_appo.evaluate`` (no training aids), as mean +- std over seeds, with learning curves.
+
+    python -m benchmarks.table1                                   # the default experiment (resumes where it stopped)
+    python -m benchmarks.table1 --rows deepsets/none,deepsets/se3 --seeds 0,1,2 --agent-steps 3e6
+    python -m benchmarks.table1 --train-scenarios static_same_goal,mix --episodes 50
+
+A row is ``architecture/symmetry`` (``encoders.ARCHITECTURES`` x ``encoders.SYMMETRIES``); only ``model.encoder``
+and ``model.symmetry`` differ between rows (``--config`` is the recipe, ``--set key=value`` changes it for every
+row). Each training is an ordinary run directory ``<out>/runs/<train scenario>/<arch>-<symmetry>/seed<k>``;
+a finished one holds ``done.json`` and is skipped next time, an interrupted one resumes from its last checkpoint
+(one killed before its first checkpoint starts again), and an evaluated one keeps its ``eval_table1/``. So a
+killed experiment resumes where it stopped, and the table fills in row by row.
+
+Output: ``<out>/table1.md`` (also appended to benchmarks/RESULTS.md unless ``--no-results``) with one table
+per (training scenario, evaluation scenario): rows x the paper's columns, mean +- std over seeds of each seed's
+mean over its evaluation episodes; each row's agent-steps/s; and learning curves (training episodes: success,
+collisions, distance against agent steps, a line per row = mean over seeds, band = min..max) as PNG.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from benchmarks.common import ROOT, append_results, commit, load_average, machine
+
+DEFAULT_ROWS = ("deepsets/none", "deepsets/se3", "kattention/none", "kattention/se3", "graphormer/none",
+                "graphormer/se3")
+DEFAULT_RECIPE = ROOT / "configs" / "table1" / "recipe.yaml"
+# training-curve metrics of metrics.jsonl (training episodes, with the training aids) -> plot title
+CURVES = (("swarm/success_rate", "success rate (Suc)"), ("swarm/collisions", "drone collisions / episode"),
+          ("swarm/dist", "distance to goal, last 5 s (m)"))
+EVAL_DIR = "eval_table1"
+
+
+# ----------------------------------------------------------------------------------------------- plan
+def parse_rows(text: str) -> List[Tuple[str, str]]:
+    import encoders
+
+    rows = []
+    for item in (s.strip() for s in text.split(",") if s.strip()):
+        arch, _, symmetry = item.partition("/")
+        if arch not in encoders.ARCHITECTURES or symmetry not in encoders.SYMMETRIES:
+            raise ValueError(f"row {item!r} must be architecture/symmetry with architecture in "
+                             f"{list(encoders.ARCHITECTURES)} and symmetry in {list(encoders.SYMMETRIES)}")
+        rows.append((arch, symmetry))
+    if not rows:
+        raise ValueError("--rows names no row")
+    return list(dict.fromkeys(rows))
+
+
+def row_label(row: Tuple[str, str]) -> str:
+    return f"{row[0]}/{row[1]}"
+
+
+def run_dir(out: Path, scenario: str, row: Tuple[str, str], seed: int) -> Path:
+    return out / "runs" / scenario / f"{row[0]}-{row[1]}" / f"seed{seed}"
+
+
+def row_config(args, scenario: str, row: Tuple[str, str], seed: int):
+    """The recipe with this row's encoder and symmetry, scenario, seed and budget (validated, nothing written)."""
+    from swarm_appo.config import load_config
+
+    rd = run_dir(Path(args.out), scenario, row, seed)
+    overrides = [*args.set, f"model.encoder={row[0]}", f"model.symmetry={row[1]}", f"env.scenario={scenario}",
+                 f"runner.seed={seed}", f"runner.total_agent_steps={args.agent_steps}",
+                 f"runner.run_dir={rd.parent}", f"runner.name={rd.name}", "runner.final_eval_episodes=0",
+                 f"wandb.group=table1-{scenario}", f"wandb.tags=[table1, {row[0]}, {row[1]}]"]
+    return load_config(str(args.config), overrides)
+
+
+# ----------------------------------------------------------------------------------------------- train
+def has_checkpoint(rd: Path) -> bool:
+    return any((rd / "checkpoints").glob("ckpt_*.pt"))
+
+
+def train_run(cfg, rd: Path, progress: bool) -> Optional[dict]:
+    """Train (or resume) one run to its budget; returns its done.json record, None if interrupted."""
+    from swarm_appo.trainer import train
+
+    if rd.exists() and not has_checkpoint(rd):  # killed before its first checkpoint: nothing worth keeping
+        shutil.rmtree(rd)
+    resume = str(rd) if rd.exists() else None
+    start = time.perf_counter()
+    result = train(cfg, resume_dir=resume, progress=progress)
+    if result.interrupted:
+        return None
+    steps_per_s = [r["perf/agent_steps_per_s"] for r in read_metrics(rd) if "perf/agent_steps_per_s" in r]
+    record = {"agent_steps": result.agent_steps, "wall_s": time.perf_counter() - start,
+              "agent_steps_per_s": float(np.median(steps_per_s)) if steps_per_s else float("nan"),
+              "resumed": resume is not None}
+    (rd / "done.json").write_text(json.dumps(record, indent=1))
+    return record
+
+
+def read_metrics(rd: Path) -> List[dict]:
+    records = []
+    path = rd / "metrics.jsonl"
+    if not path.exists():
+        return records
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:  # a torn last line of a killed run
+            continue
+    return records
+
+
+# ----------------------------------------------------------------------------------------------- evaluate
+def eval_scenarios(train_scenario: str, text: str) -> str:
+    if text != "auto":
+        return text
+    return "all" if train_scenario == "mix" else train_scenario  # mix-trained: every scenario, as the paper
+
+
+def evaluate_run(rd: Path, scenarios: str, episodes: int, workers: Optional[int]) -> Path:
+    """``swarm_appo.evaluate`` on the run's last checkpoint (seeded as every run: same episodes for every row)."""
+    from swarm_appo import evaluate
+
+    out = rd / EVAL_DIR
+    if (out / "episodes.jsonl").exists():
+        return out
+    tmp = rd / f"{EVAL_DIR}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    argv = ["--checkpoint", str(rd), "--scenarios", scenarios, "--episodes", str(episodes), "--seed", "2024",
+            "--out", str(tmp), "--no-pictures", "--no-progress", "--wandb-mode", "disabled"]
+    if workers is not None:
+        argv += ["--workers", str(workers)]
+    if evaluate.main(argv) != 0:
+        raise RuntimeError(f"evaluation of {rd} failed")
+    tmp.rename(out)  # complete or absent: a killed evaluation is redone
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- aggregate
+def seed_means(episodes_file: Path) -> Dict[str, Dict[str, float]]:
+    """{eval scenario: {metric: mean over the run's episodes}} in table units."""
+    from swarm_appo.eval_tables import TABLE1_METRICS, summarize_episodes
+
+    by_scenario: Dict[str, List[dict]] = {}
+    for line in episodes_file.read_text().splitlines():
+        e = json.loads(line)
+        by_scenario.setdefault(e["eval_scenario"], []).append(e)
+    return {s: {m: v[0] for m, v in summarize_episodes(eps, TABLE1_METRICS).items()}
+            for s, eps in by_scenario.items()}
+
+
+def table_markdown(rows: Sequence[str], cells: Dict[str, List[Dict[str, float]]], speeds: Dict[str, List[float]],
+                   n_seeds: Dict[str, int]) -> str:
+    """Rows x the paper's columns, mean +- std over seeds (the best mean of each column in bold)."""
+    from swarm_appo.eval_tables import METRICS
+
+    metrics = [m for m in ("rew", "shaping", "dist", "col", "cold", "suc", "icolr")
+               if any(m in c for r in rows for c in cells.get(r, []))]
+    stats = {}
+    for r in rows:
+        for m in metrics:
+            x = np.array([c[m] for c in cells.get(r, []) if m in c])
+            stats[r, m] = (float(x.mean()), float(x.std())) if len(x) else None
+    best = {}
+    for m in metrics:
+        vals = [(round(stats[r, m][0], METRICS[m].decimals), r) for r in rows if stats[r, m] is not None]
+        if len(vals) > 1 and len({v for v, _ in vals}) > 1:
+            target = max(vals)[0] if METRICS[m].higher_is_better else min(vals)[0]
+            best[m] = {r for v, r in vals if v == target}
+    head = "| row | seeds | " + " | ".join(METRICS[m].column for m in metrics) + " | agent-steps/s |"
+    lines = [head, "|---|---:|" + "---:|" * len(metrics) + "---:|"]
+    for r in rows:
+        parts = []
+        for m in metrics:
+            s = stats[r, m]
+            if s is None:
+                parts.append("-")
+                continue
+            d = METRICS[m].decimals
+            text = f"{s[0]:.{d}f} ± {s[1]:.{d}f}"
+            parts.append(f"**{text}**" if r in best.get(m, ()) else text)
+        sps = speeds.get(r, [])
+        speed = f"{np.mean(sps):,.0f}" if sps else "-"
+        lines.append(f"| {r} | {n_seeds.get(r, 0)} | " + " | ".join(parts) + f" | {speed} |")
+    return "\n".join(lines)
+
+
+def plot_curves(curves: Dict[str, List[List[dict]]], path: Path, title: str) -> Optional[Path]:
+    """One panel per CURVES metric: a line per row (mean over seeds on a common step grid), band min..max."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(CURVES), figsize=(5 * len(CURVES), 3.6))
+    drawn = False
+    for ax, (key, name) in zip(axes, CURVES):
+        for label, runs in curves.items():
+            series = []
+            for records in runs:
+                pts = [(r["global_step"], r[key]) for r in records if key in r and np.isfinite(r[key])]
+                if len(pts) >= 2:
+                    series.append(np.array(pts, dtype=float))
+            if not series:
+                continue
+            end = min(s[-1, 0] for s in series)
+            grid = np.linspace(max(s[0, 0] for s in series), end, 60)
+            ys = np.stack([np.interp(grid, s[:, 0], s[:, 1]) for s in series])  # [seeds, 60]
+            line, = ax.plot(grid / 1e6, ys.mean(0), label=label)
+            if len(series) > 1:
+                ax.fill_between(grid / 1e6, ys.min(0), ys.max(0), alpha=0.2, color=line.get_color())
+            drawn = True
+        ax.set_xlabel("agent steps (M)")
+        ax.set_title(name, fontsize=10)
+        ax.grid(alpha=0.3)
+    if not drawn:
+        plt.close(fig)
+        return None
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _link(path: Path) -> str:
+    """``path`` as RESULTS.md (in benchmarks/) links to it."""
+    base = ROOT / "benchmarks"
+    return str(path.relative_to(base)) if path.resolve().is_relative_to(base) else str(path)
+
+
+# ----------------------------------------------------------------------------------------------- main
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.table1", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="runs/table1", help="experiment folder (runs, evaluations, table)")
+    p.add_argument("--config", default=str(DEFAULT_RECIPE), help="the recipe shared by every row")
+    p.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="architecture/symmetry,...")
+    p.add_argument("--train-scenarios", default="static_same_goal", help="comma-separated, e.g. static_same_goal,mix")
+    p.add_argument("--seeds", default="0,1", help="comma-separated seeds, the same for every row")
+    p.add_argument("--agent-steps", type=float, default=2e6, help="training budget of every run")
+    p.add_argument("--episodes", type=int, default=50, help="evaluation episodes per scenario")
+    p.add_argument("--eval-scenarios", default="auto",
+                   help="'auto' (the training scenario; every scenario for mix), 'all' or a comma-separated list")
+    p.add_argument("--workers", type=int, default=0,
+                   help="evaluation workers (swarm_appo.evaluate --workers; 0 = in-process, no Ray start-up)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a config override applied to every row (repeatable)")
+    p.add_argument("--figures", default=str(ROOT / "benchmarks" / "figures"), help="where the PNGs go")
+    p.add_argument("--no-results", action="store_true", help="do not append to benchmarks/RESULTS.md")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--report-only", action="store_true", help="train nothing: table and curves of what exists")
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = build_parser()
+    args = p.parse_args(argv)
+    from swarm_appo.config import ConfigError
+
+    args.agent_steps = int(args.agent_steps)
+    try:
+        rows = parse_rows(args.rows)
+        seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+        scenarios = [s.strip() for s in args.train_scenarios.split(",") if s.strip()]
+        plan = [(sc, row, seed, row_config(args, sc, row, seed)) for sc in scenarios for seed in seeds
+                for row in rows]  # every config checked before anything trains
+    except (ConfigError, ValueError) as exc:
+        p.error(str(exc))
+    out = Path(args.out)
+    started = time.strftime("%Y-%m-%dT%H:%M:%S")
+    load_before = load_average()
+
+    for k, (sc, row, seed, cfg) in enumerate(plan):  # seeds outer: a partial experiment has every row once
+        rd = run_dir(out, sc, row, seed)
+        if not args.report_only and not (rd / "done.json").exists():
+            print(f"[{k + 1}/{len(plan)}] training {row_label(row)} on {sc}, seed {seed} -> {rd}", flush=True)
+            record = train_run(cfg, rd, progress=not args.no_progress)
+            if record is None:
+                print("interrupted: run the same command again to resume", file=sys.stderr)
+                return 130
+            print(f"    {record['agent_steps']:,} agent steps, {record['agent_steps_per_s']:,.0f} agent-steps/s "
+                  f"(median over the run), {record['wall_s']:.0f} s", flush=True)
+        if (rd / "done.json").exists() and not args.report_only:
+            evaluate_run(rd, eval_scenarios(sc, args.eval_scenarios), args.episodes, args.workers)
+
+    sections = []
+    figures = []
+    for sc in scenarios:
+        cells: Dict[str, Dict[str, List[Dict[str, float]]]] = {}  # eval scenario -> row -> per-seed means
+        speeds: Dict[str, List[float]] = {}
+        curves: Dict[str, List[List[dict]]] = {}
+        for row in rows:
+            label = row_label(row)
+            for seed in seeds:
+                rd = run_dir(out, sc, row, seed)
+                if not (rd / "done.json").exists():
+                    continue
+                speeds.setdefault(label, []).append(json.loads((rd / "done.json").read_text())["agent_steps_per_s"])
+                curves.setdefault(label, []).append(read_metrics(rd))
+                ep = rd / EVAL_DIR / "episodes.jsonl"
+                if ep.exists():
+                    for es, means in seed_means(ep).items():
+                        cells.setdefault(es, {}).setdefault(label, []).append(means)
+        labels = [row_label(r) for r in rows]
+        for es, by_row in cells.items():
+            n = {r: len(v) for r, v in by_row.items()}
+            sections.append(f"**trained on `{sc}`, evaluated on `{es}`** ({args.episodes} episodes per seed, "
+                            f"mean actions, no training aids)\n\n" + table_markdown(labels, by_row, speeds, n))
+        fig = plot_curves(curves, Path(args.figures) / f"table1_{sc}.png",
+                          f"training curves, {sc} (training episodes, with the training aids); mean over seeds, "
+                          f"band min..max")
+        if fig is not None:
+            figures.append(fig)
+
+    done = sum((run_dir(out, sc, r, s) / "done.json").exists() for sc in scenarios for r in rows for s in seeds)
+    text = "\n".join([
+        f"## table1 — {started}",
+        "",
+        f"- command: `python -m benchmarks.table1 {' '.join(argv if argv is not None else sys.argv[1:])}`",
+        f"- commit: {commit(['encoders', 'swarm_appo', 'quad_env', 'configs'])}",
+        f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}",
+        f"- recipe: `{Path(args.config).relative_to(ROOT) if Path(args.config).is_relative_to(ROOT) else args.config}`"
+        + (f" with {' '.join(args.set)}" if args.set else "") + f"; {args.agent_steps:,} agent steps per run; "
+        f"seeds {seeds}; {done} of {len(plan)} runs trained",
+        "- cells: mean ± std over seeds (population std) of each seed's mean over its evaluation episodes; Rew = the "
+        "paper's terms c1..c5, Shaping = the training-only terms; Col = drone, obstacle and room contacts after the "
+        "1.5 s grace period, ColD = drone-drone only; Suc = within 0.5 m of the goal during the whole last second "
+        "and no collision after the grace period; agent-steps/s = median over each run's iterations, mean over seeds",
+        "",
+        *(s + "\n" for s in sections),
+        *(f"![{f.stem}]({_link(f)})" for f in figures),
+    ])
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table1.md").write_text(text + "\n")
+    print(text)
+    if not args.no_results:
+        append_results(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
