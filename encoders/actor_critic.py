@@ -50,7 +50,8 @@ class ActorCritic(nn.Module):
             equivariance-preserving); its statistics change only through ``obs_norm.update``.
         init_action_mean: initial mean action (the bias of the actor's last layer), e.g. the hover command.
         body_frame_obs: feed the network the observation in the drone's body frame (``BodyFrameInput``); only
-            with symmetry "none" (a symmetric encoder canonicalizes its inputs itself).
+            with symmetry "none" (a symmetric encoder canonicalizes its inputs itself). None = auto: on for
+            symmetry "none", off otherwise.
         init_actor_out_scale: multiplies the Xavier-uniform weights of the actor's last layer; small values
             (PPO practice: 0.01) start the policy at a near-constant mean action ``init_action_mean``.
     """
@@ -58,11 +59,14 @@ class ActorCritic(nn.Module):
     def __init__(self, layout: ObsLayout, encoder: str = "deepsets", encoder_kwargs: Optional[dict] = None,
                  share_encoder: bool = False, action_dim: int = 4, head_hidden: Optional[int] = None,
                  head_activation: str = "tanh", init_log_std: float = 0.0, normalize_obs: bool = False,
-                 init_action_mean: float = 0.0, init_actor_out_scale: float = 1.0, body_frame_obs: bool = False,
+                 init_action_mean: float = 0.0, init_actor_out_scale: float = 1.0,
+                 body_frame_obs: Optional[bool] = False,
                  symmetry: Optional[str] = None, size: str = "paper"):
         super().__init__()
         encoder_kwargs = dict(encoder_kwargs or {})
         _, symmetry = resolve(encoder, symmetry)
+        if body_frame_obs is None:  # auto: body-frame inputs through the symmetry if there is one, else the aid
+            body_frame_obs = symmetry == "none"
         if body_frame_obs and symmetry != "none":
             raise ValueError(f"body_frame_obs=True rotates the inputs into the body frame, which symmetry "
                              f"{symmetry!r} (encoder {encoder!r}) does itself: set body_frame_obs=False or "

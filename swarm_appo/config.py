@@ -68,12 +68,13 @@ class ModelConfig:
     init_action_mean: float = 0.0
     """Initial mean action (the actor's output bias). 2 / thrust_to_weight - 1 (0.053 for the Crazyflie)
     is the hover command: the untrained policy then commands hover thrust on average (0 gives 0.95 g)."""
-    body_frame_obs: bool = False
+    body_frame_obs: Optional[bool] = False
     """Give the network the observation in the drone's body frame (world vectors v -> R_i^T v, neighbour
     rotations -> R_i^T R_j, R_i kept): a rotor command depends on body-frame quantities, which a small
     world-frame MLP must otherwise learn as products of its inputs. Only with ``symmetry: none`` (a symmetry
-    canonicalizes the inputs itself). Not in the paper (False); note that it hands a "none" encoder part of
-    what ``se3`` canonicalization gives, so keep it off to compare symmetries."""
+    canonicalizes the inputs itself). null = auto: on with ``symmetry: none``, off with a symmetry (the quickstart:
+    ``model.encoder=se3_graphormer`` on top of it just works). Not in the paper (False); it hands a "none"
+    encoder part of what ``se3`` canonicalization gives, so the symmetry comparison keeps it off."""
     init_actor_out_scale: float = 1.0
     """Multiplies the Xavier-uniform init of the actor's last layer (1 = the paper). 0.01 (PPO practice)
     makes the untrained policy command ``init_action_mean`` in every state instead of a random state-dependent
@@ -209,7 +210,7 @@ QUICKSTART: Dict[str, Any] = {
     "env": {"num_agents": 8, "scenario": "static_same_goal", "respawn_on_floor": True,
             "reward": {"crash": 2.0, "tilt": 1.0}},
     "model": {"encoder": "deepsets", "size": "small",
-              "normalize_obs": True, "body_frame_obs": True, "init_action_mean": 0.053,
+              "normalize_obs": True, "body_frame_obs": None, "init_action_mean": 0.053,
               "init_actor_out_scale": 0.01, "init_log_std": -2.0},
     "algo": {"batch_size": 2048, "num_epochs": 2, "lr": 3e-4},
     "runner": {"num_workers": 0, "envs_per_worker": 16, "total_agent_steps": 10_000_000, "time_limit_s": 420.0,
@@ -414,21 +415,7 @@ def load_config(path: Optional[str], overrides: Sequence[str] = ()) -> TrainConf
     if path is None:
         d = config_to_dict(default_config())
     else:
-        if not os.path.isfile(path):
-            raise ConfigError(f"config file not found: {path}")
-        try:
-            with open(path) as f:
-                loaded = yaml_load(f.read())
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML ({e})") from e
-        loaded = {} if loaded is None else loaded
-        if not isinstance(loaded, Mapping):
-            raise ConfigError(f"{path}: the top level must be a mapping of sections, got {_describe(loaded)}")
-        try:
-            config_from_dict(loaded)  # report errors of the file itself, naming it
-        except ConfigError as e:
-            raise ConfigError(f"{path}: {e}") from e
-        d = _deep_merge(config_to_dict(TrainConfig()), loaded)
+        d = _deep_merge(config_to_dict(TrainConfig()), _read_yaml_config(path))
     for text in overrides:
         key, value = parse_override(text)
         try:
@@ -437,6 +424,35 @@ def load_config(path: Optional[str], overrides: Sequence[str] = ()) -> TrainConf
         except ConfigError as e:
             raise ConfigError(f"override {text!r}: {e}") from e
     return validate(config_from_dict(d))
+
+
+def _read_yaml_config(path: str, _seen: Tuple[str, ...] = ()) -> Dict[str, Any]:
+    """The sections of a YAML config file; a top-level ``base: <file>`` (relative to this file) is read first
+    and this file's keys are merged over it (one Table 1 row = the paper's config + two keys)."""
+    if not os.path.isfile(path):
+        raise ConfigError(f"config file not found: {path}")
+    real = os.path.realpath(path)
+    if real in _seen:
+        raise ConfigError(f"{path}: 'base' files form a cycle: {' -> '.join(_seen + (real,))}")
+    try:
+        with open(path) as f:
+            loaded = yaml_load(f.read())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({e})") from e
+    loaded = {} if loaded is None else loaded
+    if not isinstance(loaded, Mapping):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections, got {_describe(loaded)}")
+    loaded = dict(loaded)
+    base = loaded.pop("base", None)
+    try:
+        config_from_dict(loaded)  # report errors of the file itself, naming it
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from e
+    if base is None:
+        return loaded
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: 'base' must be the path of another config file, got {_describe(base)}")
+    return _deep_merge(_read_yaml_config(os.path.join(os.path.dirname(path), base), _seen + (real,)), loaded)
 
 
 def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
@@ -547,7 +563,7 @@ def _check_model(cfg: TrainConfig) -> None:
         _, symmetry = encoders.resolve(m.encoder, m.symmetry)
     except ValueError as e:
         raise ConfigError(f"model.encoder={m.encoder!r} and model.symmetry={m.symmetry!r} contradict: {e}") from e
-    if m.body_frame_obs and symmetry != "none":
+    if m.body_frame_obs is True and symmetry != "none":
         raise ConfigError(f"model.body_frame_obs=true and model.symmetry={symmetry!r} (encoder {m.encoder!r}) both "
                           f"rotate the inputs into the drone's frame: set model.body_frame_obs=false (the symmetry "
                           f"canonicalizes the inputs itself) or model.symmetry=none")

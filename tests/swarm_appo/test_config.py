@@ -160,9 +160,9 @@ def test_inconsistent_worker_settings():
     (["model.size=huge"], r"model.size must be one of \['paper', 'small'\]"),
     (["model.encoder=se3_kattention", "model.body_frame_obs=false", "model.symmetry=yaw"],
      r"model.encoder='se3_kattention' and model.symmetry='yaw' contradict"),
-    # the quickstart has body_frame_obs on:
-    (["model.encoder=se3_graphormer"], r"model.body_frame_obs=true and model.symmetry='se3'"),
-    (["model.symmetry=yaw"], r"model.body_frame_obs=true and model.symmetry='yaw'"),
+    (["model.encoder=se3_graphormer", "model.body_frame_obs=true"],
+     r"model.body_frame_obs=true and model.symmetry='se3'"),
+    (["model.symmetry=yaw", "model.body_frame_obs=true"], r"model.body_frame_obs=true and model.symmetry='yaw'"),
     (["model.encoder=graphormer", "model.body_frame_obs=false", "model.encoder_kwargs.hidden=8"],
      r"model.encoder_kwargs.*unknown option\(s\) \['hidden'\]"),
     (["model.encoder_kwargs.hidden=0"], r"model.encoder_kwargs"),
@@ -176,8 +176,14 @@ def test_validate_checks_names_symmetry_and_encoder_options(overrides, message):
 
 @pytest.mark.parametrize("encoder", ["se3_graphormer", "se3_kattention", "graphormer", "kattention", "mlp"])
 def test_any_encoder_on_the_quickstart_uses_its_own_small_sizes(encoder):
-    cfg = load_config(None, [f"model.encoder={encoder}", "model.body_frame_obs=false"])
-    assert cfg.model.size == "small" and cfg.model.encoder_kwargs == {}
+    import encoders
+    from swarm_appo.model import model_factory
+
+    cfg = load_config(None, [f"model.encoder={encoder}"])  # body_frame_obs auto: the symmetry does it, if any
+    assert cfg.model.size == "small" and cfg.model.encoder_kwargs == {} and cfg.model.body_frame_obs is None
+    model = model_factory(cfg.env.obs_layout(), cfg.model)()
+    assert (model.body_frame is not None) == (encoders.resolve(encoder)[1] == "none")
+    assert model.actor_encoder.out_dim == 64 and model.actor_head[0].out_features == 64
     cfg = load_config("configs/paper.yaml", [f"model.encoder={encoder}", "model.size=small"])
     assert cfg.model.size == "small"
 
@@ -233,3 +239,31 @@ def test_file_errors_name_the_file(tmp_path):
 
 def test_config_error_is_a_value_error():
     assert issubclass(ConfigError, ValueError)
+
+
+@pytest.mark.parametrize("row,encoder,symmetry", [("se3_graphormer", "graphormer", "se3"),
+                                                  ("se3_kattention", "kattention", "se3"),
+                                                  ("kattention", "kattention", "none"), ("deepsets", "deepsets", "none")])
+def test_paper_row_configs_are_the_paper_config_with_two_keys(row, encoder, symmetry):
+    from swarm_appo.config import config_to_dict
+    paper = config_to_dict(load_config("configs/paper.yaml"))
+    cfg = load_config(f"configs/paper/{row}.yaml")
+    assert cfg.env.scenario == "mix" and cfg.model.size == "paper"  # Table 1: trained on all scenarios
+    assert (cfg.model.encoder, cfg.model.symmetry) == (encoder, symmetry)
+    d = config_to_dict(cfg)
+    for section in ("env", "algo"):
+        assert d[section] == paper[section]
+    assert {k for k in d["model"] if d["model"][k] != paper["model"][k]} <= {"encoder", "symmetry"}
+
+
+def test_base_config_errors_name_the_file(tmp_path):
+    (tmp_path / "a.yaml").write_text("base: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("base: a.yaml\n")
+    with pytest.raises(ConfigError, match="cycle"):
+        load_config(str(tmp_path / "a.yaml"))
+    (tmp_path / "c.yaml").write_text("base: missing.yaml\nalgo: {lr: 1.0e-3}\n")
+    with pytest.raises(ConfigError, match="missing.yaml"):
+        load_config(str(tmp_path / "c.yaml"))
+    (tmp_path / "d.yaml").write_text("base: ../configs/paper.yaml\nalgo: {lrr: 1}\n")
+    with pytest.raises(ConfigError, match="d.yaml.*algo.lrr"):
+        load_config(str(tmp_path / "d.yaml"))
