@@ -10,7 +10,8 @@ and ``model.symmetry`` differ between rows (``--config`` is the recipe, ``--set 
 row). Each training is an ordinary run directory ``<out>/runs/<train scenario>/<arch>-<symmetry>/seed<k>``;
 a finished one holds ``done.json`` and is skipped next time, an interrupted one resumes from its last checkpoint
 (one killed before its first checkpoint starts again), and an evaluated one keeps its ``eval_table1/``. So a
-killed experiment resumes where it stopped, and the table fills in row by row.
+killed experiment resumes where it stopped, and the table fills in row by row. Raising ``--agent-steps`` trains
+every finished run on from its last checkpoint to the new budget (and evaluates it again).
 
 Output: ``<out>/table1.md`` (also appended to benchmarks/RESULTS.md unless ``--no-results``) with one table
 per (training scenario, evaluation scenario): rows x the paper's columns, mean +- std over seeds of each seed's
@@ -98,6 +99,12 @@ def train_run(cfg, rd: Path, progress: bool) -> Optional[dict]:
               "resumed": resume is not None}
     (rd / "done.json").write_text(json.dumps(record, indent=1))
     return record
+
+
+def is_short(rd: Path, agent_steps: int) -> bool:
+    """A finished run trained for less than ``agent_steps`` (the experiment's budget was raised since)."""
+    done = rd / "done.json"
+    return done.exists() and json.loads(done.read_text())["agent_steps"] < agent_steps
 
 
 def read_metrics(rd: Path) -> List[dict]:
@@ -278,6 +285,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     for k, (sc, row, seed, cfg) in enumerate(plan):  # seeds outer: a partial experiment has every row once
         rd = run_dir(out, sc, row, seed)
+        if not args.report_only and is_short(rd, args.agent_steps):  # a larger budget: train on from the end
+            (rd / "done.json").unlink()
+            shutil.rmtree(rd / EVAL_DIR, ignore_errors=True)
         if not args.report_only and not (rd / "done.json").exists():
             print(f"[{k + 1}/{len(plan)}] training {row_label(row)} on {sc}, seed {seed} -> {rd}", flush=True)
             record = train_run(cfg, rd, progress=not args.no_progress)

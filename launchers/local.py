@@ -12,6 +12,7 @@ import argparse
 import logging
 import os
 import sys
+from pathlib import Path
 from typing import List, Optional
 
 os.environ.setdefault("WANDB_SILENT", "true")
@@ -28,12 +29,31 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def resume_problem(path: str) -> Optional[str]:
+    """Why ``path`` cannot be resumed (one line), or None: it must be a run directory (it holds config.yaml)."""
+    p = Path(path)
+    if not p.exists():
+        return f"{path} does not exist"
+    if p.is_file():
+        parent = p.parent.parent if p.parent.name == "checkpoints" else p.parent
+        hint = f"; did you mean its run directory {parent}?" if (parent / "config.yaml").exists() else ""
+        return f"{path} is a file, not a run directory{hint}"
+    if not (p / "config.yaml").exists():
+        return f"{path} is not a run directory (no config.yaml in it)"
+    return None
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from swarm_appo.config import ConfigError
     from swarm_appo.trainer import train
 
+    if args.resume:
+        problem = resume_problem(args.resume)
+        if problem:
+            print(f"--resume: {problem}", file=sys.stderr)
+            return 2
     try:
         cfg = None
         if not args.resume:

@@ -207,18 +207,25 @@ class PolicySpec:
 
 
 def load_policy_specs(paths: Sequence[str]) -> List[PolicySpec]:
-    """One spec per checkpoint, labelled ``run (encoder)``; labels that clash (two checkpoints of one
-    run) get the checkpoint's step, ``run@step (encoder)``, and then a counter."""
+    """One spec per checkpoint, labelled ``run (encoder)`` (``run (encoder/symmetry)`` when the symmetry is not
+    the encoder name's own); labels that clash (two checkpoints of one run) get the checkpoint's step,
+    ``run@step (encoder)``, and then a counter."""
     loaded = [load_checkpoint_policy(str(p)) for p in paths]
-    labels = [f"{x.run_name} ({x.cfg.model.encoder})" for x in loaded]
-    labels = [f"{x.run_name}@{x.agent_steps} ({x.cfg.model.encoder})" if labels.count(label) > 1 else label
-              for x, label in zip(loaded, labels)]
+    models = [_model_label(x.cfg.model) for x in loaded]
+    labels = [f"{x.run_name} ({m})" for x, m in zip(loaded, models)]
+    labels = [f"{x.run_name}@{x.agent_steps} ({m})" if labels.count(label) > 1 else label
+              for x, m, label in zip(loaded, models, labels)]
     for label in set(labels):
         same = [i for i, other in enumerate(labels) if other == label]
         for n, i in enumerate(same if len(same) > 1 else []):
             labels[i] = f"{label} #{n + 1}"
     return [PolicySpec(label, x.cfg.env, x.factory, x.model.state_dict(), x.model.layout, str(p), x.agent_steps,
                        x.cfg.runner.seed) for label, x, p in zip(labels, loaded, paths)]
+
+
+def _model_label(model) -> str:
+    """``encoder``, or ``encoder/symmetry`` when a symmetry was set explicitly (deepsets/se3)."""
+    return model.encoder if model.symmetry is None else f"{model.encoder}/{model.symmetry}"
 
 
 def random_spec(env: EnvConfig) -> PolicySpec:

@@ -169,7 +169,12 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
         if cfg is None:
             import yaml
             cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
-        log.info("resuming %s from %s", run_dir, ckpt_path)
+        if state is None:  # killed before its first checkpoint: nothing to continue, one history to keep
+            log.warning("%s has no checkpoint yet: starting it afresh at step 0 (its metrics so far are dropped, "
+                        "a new wandb run is made)", run_dir)
+            (run_dir / "wandb_id.txt").unlink(missing_ok=True)
+        else:
+            log.info("resuming %s from %s", run_dir, ckpt_path)
     assert cfg is not None, "train() needs a config or a run directory to resume"
     validate(cfg)
     if cfg.runner.ray_address is not None and not cfg.runner.serial:
@@ -196,7 +201,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     logger = MetricsLogger(run_dir, config_to_dict(cfg), wandb_mode=cfg.wandb.mode, project=cfg.wandb.project,
                            run_name=run_dir.name, resume_id=state.get("wandb_id") if state else None,
                            entity=cfg.wandb.entity, group=cfg.wandb.group, tags=cfg.wandb.tags,
-                           resume_step=agent_steps if state else None)
+                           resume_step=agent_steps if resume_dir is not None else None)
     sampler_seed = cfg.runner.seed + 7919 * learner.version  # a resumed run does not replay old episodes
     store_values = cfg.algo.value_clip is not None  # behaviour values are only needed for value clipping
     placement = None  # on a cluster: where the learner and each rollout worker run (cluster.json)

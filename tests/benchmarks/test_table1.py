@@ -77,3 +77,16 @@ def test_table_markdown_mean_std_over_seeds_and_best_in_bold():
     assert lines[0] == "| row | seeds | Rew | Suc % | agent-steps/s |"
     assert lines[2] == "| a/none | 2 | -3.00 ± 1.00 | 60.0 ± 10.0 | 200 |"
     assert lines[3] == "| a/se3 | 1 | **-1.00 ± 0.00** | **90.0 ± 0.0** | - |"
+
+
+def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_thread):
+    assert run(tmp_path, "--rows", "deepsets/none", "--seeds", "0") == 0
+    rd = tmp_path / "exp" / "runs" / "static_same_goal" / "deepsets-none" / "seed0"
+    assert json.loads((rd / "done.json").read_text())["agent_steps"] < 1536
+    argv = [a if a != "768" else "1536" for a in TINY]
+    assert table1.main(["--out", str(tmp_path / "exp"), "--figures", str(tmp_path / "fig"), *argv,
+                        "--rows", "deepsets/none", "--seeds", "0"]) == 0
+    done = json.loads((rd / "done.json").read_text())
+    assert done["agent_steps"] >= 1536 and done["resumed"]
+    steps = [json.loads(line)["global_step"] for line in (rd / "metrics.jsonl").read_text().splitlines()]
+    assert steps == sorted(steps) and len(set(steps)) == len(steps)  # one history, no step twice

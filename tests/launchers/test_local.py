@@ -62,3 +62,40 @@ def test_short_run_then_evaluate(tmp_path, capsys):
     # the CLI evaluates the same policy on the same seeded episodes as the end-of-run evaluation
     assert float(trained["dist_mean"]) == pytest.approx(records[-1]["eval/dist"], abs=1e-4)
     assert float(random["dist_mean"]) == pytest.approx(records[-1]["eval_random/dist"], abs=1e-4)
+
+
+@pytest.mark.parametrize("make,message", [
+    (lambda root: root / "nonexistent", "does not exist"),
+    (lambda root: root, "not a run directory (no config.yaml"),
+    (lambda root: _checkpoint_file(root), "is a file, not a run directory; did you mean its run directory"),
+])
+def test_resume_of_something_that_is_not_a_run_dir_is_one_line(tmp_path, capsys, make, message):
+    assert main(["--resume", str(make(tmp_path)), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("--resume: ") and message in err and "Traceback" not in err
+
+
+def _checkpoint_file(root):
+    path = root / "run" / "checkpoints" / "ckpt_000000001000.pt"
+    path.parent.mkdir(parents=True)
+    (root / "run" / "config.yaml").write_text("{}\n")
+    path.write_bytes(b"x")
+    return path
+
+
+def test_resume_before_the_first_checkpoint_starts_afresh_with_one_history(tmp_path):
+    from swarm_appo.config import load_config, save_config
+
+    overrides = [a for a in tiny_args(tmp_path, "nc") if "=" in a]
+    run_dir = tmp_path / "nc"
+    run_dir.mkdir()
+    save_config(load_config(None, overrides), run_dir / "config.yaml")
+    # what a run killed before its first checkpoint leaves: records, a wandb id, no checkpoint
+    (run_dir / "metrics.jsonl").write_text('{"global_step": 16384}\n{"global_step": 32768}\n')
+    (run_dir / "wandb_id.txt").write_text("deadrun\n")
+    assert main(["--resume", str(run_dir), "--no-progress"]) == 0
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    steps = [r["global_step"] for r in records if not any(k.startswith("eval") for k in r)]  # iterations
+    assert steps[0] < 16384 and steps == sorted(steps) and len(set(steps)) == len(steps)
+    assert 16384 not in steps and 32768 not in steps
+    assert any((run_dir / "checkpoints").glob("ckpt_*.pt"))
