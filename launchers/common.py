@@ -22,10 +22,15 @@ def load_cli_config(path: Optional[str], overrides: List[str]):
 
 
 def print_result(result) -> None:
-    """Where a finished run left its files, and its end-of-run evaluation."""
+    """Where a finished run left its files, its end-of-run evaluation and what to run next."""
     print(f"run directory: {result.run_dir}")
-    print(f"agent steps: {result.agent_steps}  policy version: {result.policy_version}  "
+    print(f"agent steps: {result.agent_steps:,}  policy version: {result.policy_version}  "
           f"worker restarts: {result.worker_restarts}")
+    if result.stopped_by == "time":
+        share = 100 * result.agent_steps / result.planned_agent_steps
+        print(f"stopped by the time limit (runner.time_limit_s) at {result.agent_steps:,} of the planned "
+              f"{result.planned_agent_steps:,} agent steps ({share:.0f}%); continue with "
+              f"--resume {result.run_dir} runner.time_limit_s=0")
     print(f"checkpoint: {result.checkpoint}")
     print(f"metrics: {result.run_dir / 'metrics.jsonl'}")
     if result.final_eval:
@@ -34,7 +39,15 @@ def print_result(result) -> None:
               f"distance to goal {ev.get('eval/dist', float('nan')):.2f} m (last 5 s) vs "
               f"{ev.get('eval_random/dist', float('nan')):.2f} m for random actions "
               f"(ratio {ev.get('eval/dist_ratio_to_random', float('nan')):.2f}); "
-              f"collisions/episode {ev.get('eval/collisions', float('nan')):.2f}")
+              f"collisions/episode {ev.get('eval/collisions', float('nan')):.2f}; "
+              f"success {100 * ev.get('eval/success_rate', float('nan')):.0f}% "
+              f"(random {100 * ev.get('eval_random/success_rate', float('nan')):.0f}%)")
+    if not result.interrupted:
+        run = result.run_dir
+        print("next:")
+        print(f"  python -m swarm_appo.evaluate --checkpoint {run} --random-baseline   # the paper's Table 1")
+        print(f"  python -m swarm_appo.export --checkpoint {run} --out export/{run.name}   # actor for a robot")
+        print(f"  python -m launchers.local --resume {run}                             # train on")
 
 
 def _interrupt(signum, frame):

@@ -544,6 +544,12 @@ def _check_scenario(env: EnvConfig) -> None:
         close = difflib.get_close_matches(env.scenario, list(SCENARIOS), n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ConfigError(f"env.scenario: unknown scenario {env.scenario!r}{hint}; valid: {list(SCENARIOS)}")
+    scenario = SCENARIO_REGISTRY[env.scenario]
+    if scenario.needs_obstacles and not env.obstacles:
+        raise ConfigError(f"env.scenario={env.scenario!r} flies through obstacles: set env.obstacles=true")
+    if env.num_agents < scenario.min_agents:
+        raise ConfigError(f"env.scenario={env.scenario!r} needs env.num_agents >= {scenario.min_agents}, "
+                          f"got {env.num_agents}")
 
 
 def _check_model(cfg: TrainConfig) -> None:

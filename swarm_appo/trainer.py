@@ -46,6 +46,19 @@ class RunResult:
     worker_restarts: int
     interrupted: bool = False
     final_eval: Optional[Dict[str, float]] = None
+    stopped_by: str = "steps"  # "steps" (the budget), "time" (runner.time_limit_s) or "interrupted"
+    planned_agent_steps: int = 0
+
+
+PROGRESS_UNITS = 1000  # the progress bar counts in thousandths of the run
+
+
+def progress_units(cfg: TrainConfig, agent_steps: int, elapsed_s: float) -> int:
+    """How far the run is toward whichever limit it reaches first, in PROGRESS_UNITS."""
+    done = agent_steps / cfg.runner.total_agent_steps
+    if cfg.runner.time_limit_s > 0:
+        done = max(done, elapsed_s / cfg.runner.time_limit_s)
+    return min(PROGRESS_UNITS, int(PROGRESS_UNITS * done))
 
 
 def fresh_run_dir(root: Path, name: str) -> Path:
@@ -236,10 +249,10 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     sampler.publish(*learner.cpu_weights())
 
     bar = None
-    if progress:
+    if progress:  # progress toward whichever limit applies: the step budget or, if set, the time limit
         from tqdm.auto import tqdm
-        bar = tqdm(total=cfg.runner.total_agent_steps, initial=agent_steps, unit="step", unit_scale=True,
-                   dynamic_ncols=True, desc=run_dir.name)
+        bar = tqdm(total=PROGRESS_UNITS, unit="‰", dynamic_ncols=True, desc=run_dir.name,
+                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}{postfix}")
 
     def checkpoint(metric: Optional[float]) -> Path:
         ckpt_state = {"format": CHECKPOINT_FORMAT, "learner": learner.state_dict(), "agent_steps": agent_steps,
@@ -315,12 +328,13 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             timers.clear()
             t_log, steps_at_log = now, agent_steps
             if bar is not None:
-                bar.update(agent_steps - bar.n)
-                bar.set_postfix(sps=f"{record['charts/sps']:.0f}",
+                bar.update(progress_units(cfg, agent_steps, time.perf_counter() - t_start) - bar.n)
+                bar.set_postfix(steps=f"{agent_steps:,}", sps=f"{record['charts/sps']:.0f}",
                                 reward=f"{last_reward:.2f}" if last_reward is not None else "-",
                                 lag=f"{record['lag/mean']:.1f}", refresh=False)
             every_updates = cfg.runner.checkpoint_every_updates
-            if now - t_ckpt >= cfg.runner.checkpoint_every_s or (every_updates and learner.version % every_updates == 0):
+            by_updates = every_updates and learner.version % every_updates == 0
+            if now - t_ckpt >= cfg.runner.checkpoint_every_s or by_updates:
                 last_ckpt = checkpoint(last_reward)
                 t_ckpt = time.perf_counter()
     except KeyboardInterrupt:
@@ -344,11 +358,19 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     sampler.close()
     if bar is not None:
         bar.close()
+    stopped_by = "interrupted" if interrupted else "steps" if agent_steps >= cfg.runner.total_agent_steps else "time"
+    if stopped_by == "time":
+        log.warning("time limit reached (runner.time_limit_s=%g): %s of the planned %s agent steps (%.0f%%)",
+                    cfg.runner.time_limit_s, f"{agent_steps:,}", f"{cfg.runner.total_agent_steps:,}",
+                    100.0 * agent_steps / cfg.runner.total_agent_steps)
     final_eval: Dict[str, float] = {}
     if cfg.runner.final_eval_episodes > 0 and not interrupted:
+        log.info("end-of-run evaluation: %d seeded episodes of %g s, trained policy and random actions, training "
+                 "aids off", cfg.runner.final_eval_episodes, cfg.env.episode_duration)
         # in swarm_appo.evaluate.evaluation_env(cfg.env): the training aids off, as the command line evaluates
         final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
                                          seed=default_eval_seed(cfg.runner.seed))
         logger.log(agent_steps, final_eval)
     logger.close()
-    return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted, final_eval)
+    return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted, final_eval,
+                     stopped_by, cfg.runner.total_agent_steps)

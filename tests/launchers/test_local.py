@@ -99,3 +99,23 @@ def test_resume_before_the_first_checkpoint_starts_afresh_with_one_history(tmp_p
     assert steps[0] < 16384 and steps == sorted(steps) and len(set(steps)) == len(steps)
     assert 16384 not in steps and 32768 not in steps
     assert any((run_dir / "checkpoints").glob("ckpt_*.pt"))
+
+
+def test_time_limit_is_reported_with_the_share_of_the_plan(tmp_path, capsys):
+    args = [a for a in tiny_args(tmp_path, "tl") if not a.startswith("runner.total_agent_steps")]
+    assert main(args + ["runner.total_agent_steps=1e9", "runner.time_limit_s=0.5", "runner.final_eval_episodes=0"]) == 0
+    out = capsys.readouterr().out
+    assert "stopped by the time limit" in out and "of the planned 1,000,000,000 agent steps" in out
+    assert f"--resume {tmp_path / 'tl'}" in out and "python -m swarm_appo.evaluate --checkpoint" in out
+
+
+def test_progress_counts_toward_whichever_limit_comes_first():
+    from swarm_appo.config import load_config
+    from swarm_appo.trainer import PROGRESS_UNITS, progress_units
+
+    steps_only = load_config(None, ["runner.time_limit_s=0", "runner.total_agent_steps=1000"])
+    assert progress_units(steps_only, 250, elapsed_s=1e6) == PROGRESS_UNITS // 4
+    both = load_config(None, ["runner.time_limit_s=100", "runner.total_agent_steps=1000"])
+    assert progress_units(both, 100, elapsed_s=50) == PROGRESS_UNITS // 2  # time binds
+    assert progress_units(both, 900, elapsed_s=50) == PROGRESS_UNITS * 9 // 10  # steps bind
+    assert progress_units(both, 5000, elapsed_s=500) == PROGRESS_UNITS

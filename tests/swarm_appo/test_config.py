@@ -156,6 +156,8 @@ def test_inconsistent_worker_settings():
     (["model.encoder=transformer"], r"model.encoder: unknown encoder 'transformer'.*valid: \['se3_graphormer'"),
     (["env.scenario=statc_same_goal"], r"env.scenario: unknown scenario 'statc_same_goal' \(did you mean "
                                        r"'static_same_goal'\?\); valid: \["),
+    (["env.scenario=o_random"], r"env.scenario='o_random' flies through obstacles: set env.obstacles=true"),
+    (["env.scenario=swarm_vs_swarm", "env.num_agents=1"], r"env.scenario='swarm_vs_swarm' needs env.num_agents >= 2"),
     (["model.symmetry=so2"], r"model.symmetry must be one of \['none', 'se3', 'yaw'\]"),
     (["model.size=huge"], r"model.size must be one of \['paper', 'small'\]"),
     (["model.encoder=se3_kattention", "model.body_frame_obs=false", "model.symmetry=yaw"],
