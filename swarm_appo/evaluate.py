@@ -430,6 +430,15 @@ def _differing_env_keys(a: EnvConfig, b: EnvConfig) -> List[str]:
     return sorted(k for k in da if k not in ignored and da[k] != db.get(k))
 
 
+def numbered_dir(base: Path) -> Path:
+    """``base``, or ``base_2``, ``base_3``... if it exists: an evaluation never overwrites an earlier one."""
+    candidate, n = base, 1
+    while candidate.exists():
+        n += 1
+        candidate = base.with_name(f"{base.name}_{n}")
+    return candidate
+
+
 def build_parser():
     """The command line of ``main`` (``launchers.ray_cluster evaluate`` checks its arguments with it)."""
     import argparse
@@ -451,7 +460,9 @@ def build_parser():
                         "an evaluation to a cluster as a job")
     p.add_argument("--seed", type=int, default=None,
                    help="episode seed (default: the end-of-run evaluation's seed of the first checkpoint)")
-    p.add_argument("--out", default=None, help="output folder (default: <run dir of the first checkpoint>/eval)")
+    p.add_argument("--out", default=None,
+                   help="output folder (default: <run dir of the first checkpoint>/eval, or eval_2, eval_3... "
+                        "if that exists: earlier evaluations are kept)")
     p.add_argument("--stochastic", action="store_true", help="sample actions instead of the mean action")
     p.add_argument("--random-baseline", action="store_true", help="add uniformly random actions as a policy")
     p.add_argument("--episodes-per-task", type=int, default=25,
@@ -501,7 +512,7 @@ def main(argv=None) -> int:
         except (ValueError, FileNotFoundError, CheckpointCorruptError) as exc:
             p.error(str(exc))
         seed = default_eval_seed(specs[0].seed) if args.seed is None else args.seed
-        out = Path(args.out) if args.out else run_dir_of(args.checkpoint[0]) / "eval"
+        out = Path(args.out) if args.out else numbered_dir(run_dir_of(args.checkpoint[0]) / "eval")
         tasks = plan_tasks(specs, num_agents, scenarios, args.episodes, args.episodes_per_task, seed,
                            deterministic=not args.stochastic, pictures=not args.no_pictures)
         start = time.perf_counter()

@@ -280,3 +280,12 @@ def test_two_checkpoints_of_one_run_are_told_apart_by_their_step(tmp_path):
     specs = evaluate.load_policy_specs([first, second, second])
     assert [s.label for s in specs] == ["q@1000 (deepsets)", "q@2000 (deepsets) #1", "q@2000 (deepsets) #2"]
     assert [s.step for s in specs] == [1000, 2000, 2000]
+
+
+def test_a_second_evaluation_does_not_overwrite_the_first(tmp_path):
+    run = tiny_checkpoint(tmp_path, "twice")
+    for _ in range(2):
+        assert cli("--checkpoint", run, "--scenarios", "static_same_goal", "--episodes", 1, "--workers", 0,
+                   "--no-pictures", "--wandb-mode", "disabled") == 0
+    assert (run / "eval" / "episodes.jsonl").exists() and (run / "eval_2" / "episodes.jsonl").exists()
+    assert not (run / "eval_3").exists()
