@@ -183,9 +183,9 @@ class WandbConfig:
     entity: Optional[str] = None
     """wandb entity (user or team); None = your default."""
     group: Optional[str] = None
-    """wandb group, e.g. to gather the seeds of one experiment."""
+    """wandb group, e.g. to gather the seeds of one experiment; null = ``<architecture>/<symmetry>``."""
     tags: Tuple[str, ...] = ()
-    """wandb tags."""
+    """wandb tags; every run also gets its architecture, ``symmetry:<s>``, ``size:<s>`` and ``scenario:<s>``."""
 
 
 @dataclass

@@ -116,6 +116,20 @@ def learner_threads(cfg: TrainConfig, num_workers: int) -> int:
     return max(1, cores - local_workers)
 
 
+def model_group(cfg: TrainConfig) -> str:
+    """Default wandb group: runs of one architecture and symmetry side by side (``deepsets/se3``)."""
+    import encoders
+    arch, symmetry = encoders.resolve(cfg.model.encoder, cfg.model.symmetry)
+    return f"{arch}/{symmetry}"
+
+
+def model_tags(cfg: TrainConfig) -> tuple:
+    """Tags every run gets, to filter a dashboard: architecture, symmetry, size and scenario."""
+    import encoders
+    arch, symmetry = encoders.resolve(cfg.model.encoder, cfg.model.symmetry)
+    return (arch, f"symmetry:{symmetry}", f"size:{cfg.model.size}", f"scenario:{cfg.env.scenario}")
+
+
 def max_fragments_in_flight(cfg: TrainConfig, num_workers: int) -> int:
     return cfg.runner.max_fragments_in_flight or 2 * num_workers  # 0 = auto: one queued behind each running
 
@@ -213,7 +227,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
 
     logger = MetricsLogger(run_dir, config_to_dict(cfg), wandb_mode=cfg.wandb.mode, project=cfg.wandb.project,
                            run_name=run_dir.name, resume_id=state.get("wandb_id") if state else None,
-                           entity=cfg.wandb.entity, group=cfg.wandb.group, tags=cfg.wandb.tags,
+                           entity=cfg.wandb.entity, group=cfg.wandb.group or model_group(cfg),
+                           tags=tuple(dict.fromkeys((*cfg.wandb.tags, *model_tags(cfg)))),
                            resume_step=agent_steps if resume_dir is not None else None)
     sampler_seed = cfg.runner.seed + 7919 * learner.version  # a resumed run does not replay old episodes
     store_values = cfg.algo.value_clip is not None  # behaviour values are only needed for value clipping

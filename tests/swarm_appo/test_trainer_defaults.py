@@ -1,4 +1,5 @@
-"""Learner threads + rollout workers never exceed the cores (runner.learner_threads=0)."""
+"""Trainer defaults: learner threads + rollout workers never exceed the cores (runner.learner_threads=0); wandb
+groups and tags name the architecture and symmetry."""
 import pytest
 
 from swarm_appo import trainer
@@ -18,3 +19,10 @@ def test_learner_threads_fill_the_cores_left(monkeypatch, cores, overrides, work
     monkeypatch.setattr(trainer.os, "cpu_count", lambda: cores)
     cfg = load_config(None, overrides)
     assert trainer.learner_threads(cfg, workers) == expected
+
+
+def test_wandb_group_and_tags_name_architecture_and_symmetry():
+    cfg = load_config(None, ["model.encoder=se3_kattention"])
+    assert trainer.model_group(cfg) == "kattention/se3"
+    assert trainer.model_tags(cfg) == ("kattention", "symmetry:se3", "size:small", "scenario:static_same_goal")
+    assert trainer.model_group(load_config(None, ["model.symmetry=yaw", "model.body_frame_obs=null"])) == "deepsets/yaw"
