@@ -195,6 +195,18 @@ def table_markdown(rows: Sequence[str], cells: Dict[str, List[Dict[str, float]]]
     return "\n".join(lines)
 
 
+SMOOTH_RECORDS = 9  # learning curves: running mean over this many logged iterations (a few thousand episodes)
+
+
+def smooth(y: np.ndarray, window: int) -> np.ndarray:
+    """Centred running mean, the window shrinking at the ends (no lag, no padding artefacts)."""
+    c = np.concatenate([[0.0], np.cumsum(y)])
+    half = window // 2
+    lo = np.clip(np.arange(len(y)) - half, 0, len(y))
+    hi = np.clip(np.arange(len(y)) + half + 1, 0, len(y))
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
 def plot_curves(curves: Dict[str, List[List[dict]]], path: Path, title: str) -> Optional[Path]:
     """One panel per CURVES metric: a line per row (mean over seeds on a common step grid), band min..max."""
     import matplotlib
@@ -210,7 +222,9 @@ def plot_curves(curves: Dict[str, List[List[dict]]], path: Path, title: str) -> 
             for records in runs:
                 pts = [(r["global_step"], r[key]) for r in records if key in r and np.isfinite(r[key])]
                 if len(pts) >= 2:
-                    series.append(np.array(pts, dtype=float))
+                    pts = np.array(pts, dtype=float)
+                    pts[:, 1] = smooth(pts[:, 1], SMOOTH_RECORDS)
+                    series.append(pts)
             if not series:
                 continue
             end = min(s[-1, 0] for s in series)
@@ -323,8 +337,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             sections.append(f"**trained on `{sc}`, evaluated on `{es}`** ({args.episodes} episodes per seed, "
                             f"mean actions, no training aids)\n\n" + table_markdown(labels, by_row, speeds, n))
         fig = plot_curves(curves, Path(args.figures) / f"table1_{sc}.png",
-                          f"training curves, {sc} (training episodes, with the training aids); mean over seeds, "
-                          f"band min..max")
+                          f"training curves, {sc} (training episodes, with the training aids; running mean over "
+                          f"{SMOOTH_RECORDS} iterations); mean over seeds, band min..max")
         if fig is not None:
             figures.append(fig)
 

@@ -90,3 +90,11 @@ def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_thread):
     assert done["agent_steps"] >= 1536 and done["resumed"]
     steps = [json.loads(line)["global_step"] for line in (rd / "metrics.jsonl").read_text().splitlines()]
     assert steps == sorted(steps) and len(set(steps)) == len(steps)  # one history, no step twice
+
+
+def test_smooth_is_a_centred_running_mean():
+    import numpy as np
+
+    y = np.array([0.0, 0.0, 3.0, 0.0, 0.0])
+    assert np.allclose(table1.smooth(y, 3), [0.0, 1.0, 1.0, 1.0, 0.0])
+    assert np.allclose(table1.smooth(y, 1), y)
