@@ -20,6 +20,7 @@ from .body_frame import BodyFrameInput
 from .common import mlp, xavier_init_
 from .obs_norm import FieldScaleNorm
 from .registry import make_encoder, resolve
+from .symmetric import Canonicalized
 
 HEAD_HIDDEN = {"paper": 256, "small": 64}  # head width per model.size preset
 
@@ -95,6 +96,18 @@ class ActorCritic(nn.Module):
             self.actor_head[-1].bias.fill_(float(init_action_mean))
             self.actor_head[-1].weight.mul_(float(init_actor_out_scale))
         self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std)))
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """``nn.Module.load_state_dict``, also reading checkpoints from before the symmetry option (their
+        se3_kattention weights sat at ``<encoder>.net.*``, now ``<encoder>.inner.net.*``)."""
+        state_dict = dict(state_dict)
+        for name in ("actor_encoder", "critic_encoder"):
+            if not isinstance(getattr(self, name), Canonicalized):
+                continue
+            old, new = f"{name}.net.", f"{name}.inner.net."
+            for key in [k for k in state_dict if k.startswith(old)]:
+                state_dict[new + key[len(old):]] = state_dict.pop(key)
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     # ------------------------------------------------------------------ pieces
     def _normalize(self, obs: torch.Tensor) -> torch.Tensor:

@@ -116,3 +116,17 @@ def test_actor_critic_with_symmetry_trains_and_is_not_equivariant_as_a_whole(sym
     assert (mean - mean_moved).abs().max() > 1e-4
     value.sum().backward()
     assert all(p.grad is not None for p in model.critic_encoder.parameters())
+
+
+def test_checkpoints_from_before_the_symmetry_option_load():
+    """se3_kattention weights were saved at <encoder>.net.* before the canonicalization became a wrapper."""
+    layout = ObsLayout(3)
+    torch.manual_seed(0)
+    model = encoders.ActorCritic(layout, "se3_kattention", TINY_OPTIONS["se3_kattention"]).double()
+    old = {k.replace(".inner.net.", ".net."): v.clone() for k, v in model.state_dict().items()}
+    assert any(".net." in k and ".inner." not in k for k in old)
+    torch.manual_seed(1)
+    fresh = encoders.ActorCritic(layout, "se3_kattention", TINY_OPTIONS["se3_kattention"]).double()
+    fresh.load_state_dict(old)
+    obs = batch(layout)
+    assert torch.equal(fresh(obs)[0], model(obs)[0])
