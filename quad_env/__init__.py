@@ -3,6 +3,10 @@
 ``VecQuadEnv`` steps E swarms x N drones in one kernel (rollout workers); ``QuadSwarmEnv`` (gymnasium
 style) and ``QuadSwarmParallelEnv`` (PettingZoo) wrap one swarm and are imported on first use.
 """
+from quad_env.jit_cache import keyed_cache
+
+with keyed_cache():  # every module that defines numba kernels: compiled code cached per version of the sources
+    from quad_env import kernels, obstacles, replay, rng, scenarios  # noqa: F401
 from quad_env.config import EnvConfig, PhysicsConfig, RewardConfig
 from quad_env.obs_layout import FIELD_KINDS, Field, ObsLayout
 from quad_env.params import REWARD_TERMS

@@ -1,0 +1,76 @@
+"""numba's cache is keyed on the package's sources: a change to a file a kernel depends on, but does not live in,
+never leaves the old compiled kernel running."""
+import os
+import subprocess
+import sys
+import textwrap
+
+import numba
+
+import quad_env
+from quad_env import jit_cache
+
+KERNEL = """
+import sys
+sys.path.insert(0, {root!r})
+from pkg.jit_cache import keyed_cache
+with keyed_cache() as folder:
+    from pkg.kernels import scaled
+print(scaled(2.0), folder)
+"""
+
+
+def make_package(root, constant):
+    pkg = root / "pkg"
+    pkg.mkdir(exist_ok=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "jit_cache.py").write_text(open(jit_cache.__file__).read())
+    (pkg / "params.py").write_text(f"SCALE = {constant}\n")  # what the kernel inlines, in another file
+    (pkg / "kernels.py").write_text(textwrap.dedent("""
+        from numba import njit
+        from pkg.params import SCALE
+
+        @njit(cache=True)
+        def scaled(x):
+            return SCALE * x
+    """))
+
+
+def run(root, cache_root):
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache_root)}
+    out = subprocess.run([sys.executable, "-c", KERNEL.format(root=str(root))], capture_output=True, text=True,
+                         env=env, check=True).stdout.split()
+    return float(out[0]), out[1]
+
+
+def test_a_change_to_a_dependency_alone_recompiles(tmp_path):
+    cache = tmp_path / "cache"
+    make_package(tmp_path, 3.0)
+    assert run(tmp_path, cache)[0] == 6.0
+    value, folder = run(tmp_path, cache)  # served from the cache
+    assert value == 6.0 and any(os.scandir(folder))
+    make_package(tmp_path, 5.0)  # kernels.py untouched: numba's own check would serve 6.0 again
+    value, new_folder = run(tmp_path, cache)
+    assert value == 10.0 and new_folder != folder
+    make_package(tmp_path, 3.0)  # back to the first version: its compiled kernels are found again
+    assert run(tmp_path, cache) == (6.0, folder)
+
+
+def test_hash_covers_every_source_file(tmp_path):
+    (tmp_path / "a.py").write_text("x = 1\n")
+    (tmp_path / "b.py").write_text("y = 2\n")
+    first = jit_cache.source_hash(tmp_path)
+    (tmp_path / "b.py").write_text("y = 3\n")
+    assert jit_cache.source_hash(tmp_path) != first
+    (tmp_path / "b.py").write_text("y = 2\n")
+    assert jit_cache.source_hash(tmp_path) == first
+
+
+def test_quad_env_kernels_cache_under_its_source_hash_and_numba_is_restored():
+    from quad_env import kernels
+
+    expected = str(jit_cache.cache_root() / jit_cache.source_hash())
+    locator = kernels.step_kernel._cache._cache_path
+    assert locator.startswith(expected)
+    assert numba.config.CACHE_DIR != expected  # other numba users keep their setting
+    assert quad_env.VecQuadEnv is not None
