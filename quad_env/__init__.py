@@ -15,12 +15,12 @@ from quad_env.vec_env import DroneState, VecQuadEnv
 
 __all__ = ["EnvConfig", "RewardConfig", "PhysicsConfig", "ObsLayout", "Field", "FIELD_KINDS", "REWARD_TERMS",
            "SCENARIOS", "make_scenario", "register_scenario", "VecQuadEnv", "DroneState", "QuadSwarmEnv",
-           "QuadSwarmParallelEnv"]
+           "QuadSwarmParallelEnv", "QuadDroneEnv", "QuadSwarmVectorEnv"]
 
 
 def __getattr__(name):
     # The adapters import gymnasium and pettingzoo: only when asked for.
-    if name in ("QuadSwarmEnv", "QuadSwarmParallelEnv"):
+    if name in ("QuadSwarmEnv", "QuadSwarmParallelEnv", "QuadDroneEnv", "QuadSwarmVectorEnv"):
         from quad_env import adapters
         return getattr(adapters, name)
     raise AttributeError(f"module 'quad_env' has no attribute {name!r}")

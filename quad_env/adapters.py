@@ -1,7 +1,13 @@
-"""Single-swarm adapters: a gymnasium-style env and a PettingZoo ``ParallelEnv``.
+"""Adapters to the standard APIs, each for the shape it fits:
 
-Both wrap ``VecQuadEnv`` with one swarm and no auto-reset: at the end of an episode (a truncation) the
-returned observation is the true last one and ``reset()`` must be called. Arrays returned are copies.
+- ``QuadDroneEnv``: one drone, a ``gymnasium.Env`` (passes gymnasium's ``check_env``);
+- ``QuadSwarmVectorEnv``: a swarm (or several), a ``gymnasium.vector.VectorEnv`` with one slot per drone;
+- ``QuadSwarmParallelEnv``: a swarm, a PettingZoo ``ParallelEnv`` (passes ``parallel_api_test``);
+- ``QuadSwarmEnv``: a swarm with per-drone arrays, gymnasium *style* (arrays where gymnasium expects scalars; the
+  base of the PettingZoo adapter).
+
+All but the vector env wrap ``VecQuadEnv`` with one swarm and no auto-reset: at the end of an episode (a
+truncation) the returned observation is the true last one and ``reset()`` must be called. Arrays returned are copies.
 """
 from __future__ import annotations
 
@@ -46,6 +52,72 @@ class QuadSwarmEnv(gymnasium.Env):
         if truncated.any():
             info["episode"] = self.vec.pop_episode_stats()[0]
         return obs.copy(), rew.copy(), terminated.copy(), truncated.copy(), info
+
+
+class QuadDroneEnv(gymnasium.Env):
+    """One drone (a swarm of N = 1), as gymnasium defines an environment: ``obs [D]``, ``action [4]``, a float
+    reward and bool terminated / truncated. Passes ``gymnasium.utils.env_checker.check_env``; the episode stats
+    come in ``info["episode_stats"]`` at the last step. ``env.num_agents`` must be 1 (a swarm is a vector env:
+    ``QuadSwarmVectorEnv``)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, cfg: Optional[EnvConfig] = None, seed: int = 0):
+        cfg = cfg if cfg is not None else EnvConfig(num_agents=1)
+        if cfg.num_agents != 1:
+            raise ValueError(f"QuadDroneEnv flies one drone, got env.num_agents={cfg.num_agents}; for a swarm use "
+                             "QuadSwarmVectorEnv (one slot per drone) or QuadSwarmParallelEnv (PettingZoo)")
+        self.env = QuadSwarmEnv(cfg, seed=seed)
+        self.layout = self.env.layout
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.env.vec.obs_dim,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        super().reset(seed=seed)
+        obs, info = self.env.reset(seed=seed)
+        return obs[0], info
+
+    def step(self, action):
+        obs, rew, term, trunc, info = self.env.step(np.asarray(action, dtype=np.float32).reshape(1, 4))
+        info = {"reward_terms": {k: float(v[0]) for k, v in info["reward_terms"].items()},
+                **({"episode_stats": info["episode"]} if "episode" in info else {})}
+        return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), info
+
+
+class QuadSwarmVectorEnv(gymnasium.vector.VectorEnv):
+    """E swarms of N drones as a gymnasium ``VectorEnv`` with one slot per drone (``num_envs = E * N``; drone a of
+    swarm e is slot ``e * N + a``), auto-reset in the same step (``AutoresetMode.SAME_STEP``): when a swarm's
+    episode ends, its slots return the first observation of the next episode, and ``infos["final_obs"]`` (with
+    the mask ``infos["_final_obs"]``) holds the true last ones. Works with gymnasium's vector wrappers (e.g.
+    ``gymnasium.wrappers.vector.RecordEpisodeStatistics``)."""
+
+    metadata = {"render_modes": [], "autoreset_mode": gymnasium.vector.AutoresetMode.SAME_STEP}
+
+    def __init__(self, cfg: Optional[EnvConfig] = None, num_swarms: int = 1, seed: int = 0):
+        self.cfg = cfg if cfg is not None else EnvConfig()
+        self.vec = VecQuadEnv(self.cfg, num_envs=num_swarms, seed=seed, auto_reset=True)
+        self.layout = self.vec.layout
+        self.num_envs = num_swarms * self.vec.num_agents
+        self.single_observation_space = spaces.Box(-np.inf, np.inf, (self.vec.obs_dim,), np.float32)
+        self.single_action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, self.num_envs)
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        obs = self.vec.reset(seed=seed)
+        return obs.copy(), {}
+
+    def step(self, actions):
+        obs, rew, term, trunc = self.vec.step(np.asarray(actions, dtype=np.float32))
+        infos: Dict[str, Any] = {}
+        done = term | trunc
+        if done.any():
+            final = np.empty(self.num_envs, dtype=object)
+            for k in np.flatnonzero(done):
+                final[k] = self.vec.final_obs[k].copy()
+            infos["final_obs"], infos["_final_obs"] = final, done.copy()
+            infos["episode_stats"] = self.vec.pop_episode_stats()  # one dict per swarm that ended
+        return obs.copy(), rew.astype(np.float64), term.copy(), trunc.copy(), infos
 
 
 class QuadSwarmParallelEnv(ParallelEnv):
