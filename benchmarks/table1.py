@@ -264,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="architecture/symmetry,...")
     p.add_argument("--train-scenarios", default="static_same_goal", help="comma-separated, e.g. static_same_goal,mix")
     p.add_argument("--seeds", default="0,1", help="comma-separated seeds, the same for every row")
-    p.add_argument("--agent-steps", type=float, default=2e6, help="training budget of every run")
+    p.add_argument("--agent-steps", type=float, default=3e6, help="training budget of every run")
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes per scenario")
     p.add_argument("--eval-scenarios", default="auto",
                    help="'auto' (the training scenario; every scenario for mix), 'all' or a comma-separated list")
