@@ -27,6 +27,7 @@ from swarm_appo.checkpoint import atomic_write_bytes
 
 DEVICES = ("auto", "cpu", "cuda")
 WANDB_MODES = ("offline", "online", "disabled")
+LR_SCHEDULES = ("constant", "linear")
 
 
 class ConfigError(ValueError):
@@ -122,6 +123,10 @@ class AlgoConfig:
     """Clip of the importance weight on the policy-gradient advantage; None = no clipping."""
     vtrace_lambda: float = 1.0
     """V-trace trace factor lambda (IMPALA, Remark 2): 1 = plain V-trace; e.g. 0.95 cuts variance like GAE."""
+    lr_schedule: str = "constant"
+    """"constant" (the paper) or "linear": lr * (1 - agent_steps / runner.total_agent_steps), down to 0 at the
+    budget (Sample Factory's linear decay). A run of the 2-core recipe at constant 3e-4 collapsed after ~30 M steps
+    with approx-KL rising to 0.05-0.085 (benchmarks/RESULTS.md, "quality goal")."""
 
 
 @dataclass
@@ -485,6 +490,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check(bool(m.head_activation), "model.head_activation", "must name an activation", m.head_activation)
 
     _check(a.lr > 0, "algo.lr", "must be > 0", a.lr)
+    _check(a.lr_schedule in LR_SCHEDULES, "algo.lr_schedule", f"must be one of {list(LR_SCHEDULES)}", a.lr_schedule)
     _check(0 <= a.gamma <= 1, "algo.gamma", "must be in [0, 1]", a.gamma)
     _check(0 <= a.vtrace_lambda <= 1, "algo.vtrace_lambda", "must be in [0, 1]", a.vtrace_lambda)
     _check(all(0 <= b < 1 for b in a.adam_betas), "algo.adam_betas", "must be two numbers in [0, 1)", a.adam_betas)

@@ -64,6 +64,7 @@ METRICS: Dict[str, str] = {
     "charts/episodes": "number of those episodes",
     "charts/sps": "agent steps per second since the last record",
     "charts/elapsed_s": "wall time since the start of this process",
+    "charts/learning_rate": "Adam learning rate of the last batch (algo.lr_schedule)",
     # swarm/: the paper's evaluation metrics, also per scenario as swarm/<scenario>/<name> (swarm_metric)
     "swarm/dist": "Dist: mean distance of a drone to its goal over the last 5 s of the episode (m)",
     "swarm/dist_final": "mean distance of a drone to its goal at the end of the episode (m)",

@@ -116,6 +116,14 @@ def learner_threads(cfg: TrainConfig, num_workers: int) -> int:
     return max(1, cores - local_workers)
 
 
+def scheduled_lr(cfg: TrainConfig, agent_steps: int) -> float:
+    """The learning rate for a batch trained at ``agent_steps`` (``algo.lr_schedule``); a function of the step
+    count only, so a resumed run continues the same schedule."""
+    if cfg.algo.lr_schedule == "linear":
+        return cfg.algo.lr * max(0.0, 1.0 - agent_steps / cfg.runner.total_agent_steps)
+    return cfg.algo.lr
+
+
 def model_group(cfg: TrainConfig) -> str:
     """Default wandb group: runs of one architecture and symmetry side by side (``deepsets/se3``)."""
     import encoders
@@ -306,6 +314,9 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                 continue
 
             t1 = time.perf_counter()
+            lr = scheduled_lr(cfg, agent_steps)
+            for group in learner.optimizer.param_groups:
+                group["lr"] = lr
             stats = learner.train(batch)
             timers["learner"] += time.perf_counter() - t1
             timers["learner_samples"] += sum(f["num_agent_steps"] for f in batch)
@@ -334,6 +345,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                 "perf/inference_share": timers["inference"] / worker,
                 "perf/worker_restarts": float(sampler.restarts),
                 "charts/elapsed_s": now - t_start,
+                "charts/learning_rate": learner.optimizer.param_groups[0]["lr"],
             })
             record.update(fetch_metrics(timers, driver))
             record.update(system_metrics())
