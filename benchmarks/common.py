@@ -12,17 +12,23 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
 
 
+MATMUL_FLAGS = ("amx_bf16", "amx_tile", "avx512_bf16", "avx512f", "avx2")  # what bounds the GEMM rate
+
+
 def machine(extra: str = "") -> str:
-    """CPU model, cores, OS (and whatever the caller adds, e.g. library versions)."""
-    model = platform.processor() or "unknown cpu"
+    """CPU model, its matrix-multiply flags (bf16/AMX), cores, OS (and whatever the caller adds)."""
+    fields = {}  # the first core's "model name" and "flags"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
     except OSError:
         pass
-    text = f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()} {platform.machine()}"
+    model = fields.get("model name") or platform.processor() or "unknown cpu"
+    flags = set(fields.get("flags", "").split())
+    present = [f for f in MATMUL_FLAGS if f in flags]
+    text = (f"{model} (flags: {' '.join(present) or 'none of ' + '/'.join(MATMUL_FLAGS)}), {os.cpu_count()} cores, "
+            f"Python {platform.python_version()}, {platform.system()} {platform.machine()}")
     return f"{text}, {extra}" if extra else text
 
 
