@@ -73,7 +73,7 @@ def row_config(args, scenario: str, row: Tuple[str, str], seed: int):
     overrides = [*args.set, f"model.encoder={row[0]}", f"model.symmetry={row[1]}", f"env.scenario={scenario}",
                  f"runner.seed={seed}", f"runner.total_agent_steps={args.agent_steps}",
                  f"runner.run_dir={rd.parent}", f"runner.name={rd.name}", "runner.final_eval_episodes=0",
-                 f"wandb.group=table1-{scenario}", f"wandb.tags=[table1, {row[0]}, {row[1]}]"]
+                 f"wandb.group=table1-{scenario}", "wandb.tags=[table1]"]  # the trainer adds architecture/symmetry tags
     return load_config(str(args.config), overrides)
 
 

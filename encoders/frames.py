@@ -16,7 +16,7 @@ x, y, z in turn (``out[..., S:].reshape(..., V, 3)``).
 """
 from __future__ import annotations
 
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 
@@ -96,3 +96,18 @@ def frame_of(symmetry: str, R: torch.Tensor) -> torch.Tensor:
     if symmetry == "none":
         return torch.eye(3, dtype=R.dtype, device=R.device).expand(R.shape)
     raise ValueError(f"unknown symmetry {symmetry!r}; valid: {list(SYMMETRIES)}")
+
+
+def typed_output(out_dim: int, out_vectors: Optional[int], symmetry: str,
+                 width_name: str = "out_dim") -> Tuple[int, Optional[Tuple[int, int]]]:
+    """``(out_vectors, equivariance)`` of an encoder output of width ``out_dim`` typed as scalars then 3-vectors.
+
+    ``out_vectors`` None = a quarter of the width as 3-vectors with a symmetry (the paper's split: 128 of 512 for
+    SE(3)-K-Attention, 64 of 256 for the Graphormer), 0 without one. ``equivariance`` is ``(num_scalars,
+    num_vectors)``, None without a symmetry (the output is then plain, in world axes)."""
+    if out_vectors is None:
+        out_vectors = 0 if symmetry == "none" else out_dim // 4
+    out_vectors = int(out_vectors)
+    if not 0 <= 3 * out_vectors <= out_dim:
+        raise ValueError(f"out_vectors={out_vectors} needs 0 <= 3 * out_vectors <= {width_name}={out_dim}")
+    return out_vectors, None if symmetry == "none" else (out_dim - 3 * out_vectors, out_vectors)

@@ -35,7 +35,7 @@ from torch import nn
 from quad_env.obs_layout import ObsLayout
 
 from .common import activation, mlp, read_obs, self_input_dim, self_keys, xavier_init_
-from .frames import SYMMETRIES, canonicalize, frame_of, own_rotation, typed_to_world
+from .frames import SYMMETRIES, canonicalize, frame_of, own_rotation, typed_output, typed_to_world
 
 NODE_INPUTS = 10  # per node, in its own frame: velocity (3), goal offset (3), body rates (3), is-self flag (1)
 POSE_CHANNELS = 4  # vector channels of a node's pose: its position and the 3 columns of its attitude
@@ -182,15 +182,10 @@ class GraphormerEncoder(nn.Module):
         if len(zeta_sizes) < 3:
             raise ValueError(f"zeta_sizes needs at least 3 widths (2 before the join, 1+ after), got {zeta_sizes}")
         out_dim = zeta_sizes[-1]
-        if out_vectors is None:  # the paper's 64 of 256 (a quarter); plain world-axis outputs without a symmetry
-            out_vectors = 0 if symmetry == "none" else out_dim // 4
-        if not 0 <= 3 * out_vectors <= out_dim:
-            raise ValueError(f"out_vectors={out_vectors} needs 0 <= 3 * out_vectors <= zeta_sizes[-1]={out_dim}")
+        self.out_vectors, self.equivariance = typed_output(out_dim, out_vectors, symmetry, "zeta_sizes[-1]")
         self.layout = layout
         self.out_dim = out_dim
-        self.out_vectors = out_vectors
         self.symmetry = symmetry
-        self.equivariance = None if symmetry == "none" else (out_dim - 3 * out_vectors, out_vectors)
         self.edge_radius = edge_radius
         self.m = multiplicity
         width = 4 * multiplicity

@@ -19,13 +19,7 @@ from torch import nn
 from quad_env.obs_layout import ObsLayout
 
 from .body_frame import FrameInput
-from .frames import SYMMETRIES, typed_to_world
-
-
-def default_out_vectors(out_dim: int) -> int:
-    """A quarter of the output width as 3-vectors (3/4 of the entries), the rest scalars: the split of the
-    paper's SE(3)-K-Attention (128 vectors + 128 scalars of 512)."""
-    return out_dim // 4
+from .frames import SYMMETRIES, typed_output, typed_to_world
 
 
 class Canonicalized(nn.Module):
@@ -35,23 +29,18 @@ class Canonicalized(nn.Module):
         inner: a world-frame encoder ``obs [B, D] -> [B, out_dim]`` (its attribute ``out_dim``).
         layout: observation layout.
         symmetry: "se3" or "yaw" (see ``encoders.frames.SYMMETRIES``).
-        out_vectors: how many outputs are 3-vectors; None = ``default_out_vectors(out_dim)``.
+        out_vectors: how many outputs are 3-vectors; None = a quarter of the width (``frames.typed_output``).
     """
 
     def __init__(self, inner: nn.Module, layout: ObsLayout, symmetry: str, out_vectors: Optional[int] = None):
         super().__init__()
         if symmetry not in SYMMETRIES or symmetry == "none":
             raise ValueError(f"Canonicalized needs a symmetry group, one of {list(SYMMETRIES[1:])}, got {symmetry!r}")
-        out_dim = inner.out_dim
-        out_vectors = default_out_vectors(out_dim) if out_vectors is None else int(out_vectors)
-        if not 0 <= 3 * out_vectors <= out_dim:
-            raise ValueError(f"out_vectors={out_vectors} needs 0 <= 3 * out_vectors <= out_dim={out_dim}")
+        self.out_vectors, self.equivariance = typed_output(inner.out_dim, out_vectors, symmetry)
         self.inner = inner
         self.layout = layout
         self.symmetry = symmetry
-        self.out_dim = out_dim
-        self.out_vectors = out_vectors
-        self.equivariance = (out_dim - 3 * out_vectors, out_vectors)
+        self.out_dim = inner.out_dim
         self.to_local = FrameInput(layout, symmetry, keep_own_rot=False)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
