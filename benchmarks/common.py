@@ -62,16 +62,23 @@ def best_time(fn: Callable[[], object], repeats: int) -> float:
     return min(times)
 
 
-def sgemm_rate(repeats: int = 3, size: int = 1024) -> float:
-    """float32 FLOP/s of a size^3 matmul with the current torch thread setting."""
+def gemm_rate(precision: str = "fp32", repeats: int = 3, size: int = 1024) -> float:
+    """FLOP/s of a size^3 matmul in ``precision`` ("fp32", or "bf16": bf16 operands, as autocast runs a
+    Linear) with the current torch thread setting."""
     import torch
 
-    a, b = torch.randn(size, size), torch.randn(size, size)
+    dtype = {"fp32": torch.float32, "bf16": torch.bfloat16}[precision]
+    a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
 
     def ten():
         for _ in range(10):
             a @ b
     return 10 * 2 * size ** 3 / best_time(ten, repeats)
+
+
+def sgemm_rate(repeats: int = 3, size: int = 1024) -> float:
+    """float32 FLOP/s of a size^3 matmul with the current torch thread setting."""
+    return gemm_rate("fp32", repeats, size)
 
 
 def append_results(section: str) -> None:

@@ -125,16 +125,18 @@ class ActorCritic(nn.Module):
     def get_value(self, obs: torch.Tensor) -> torch.Tensor:
         """V(obs): [B]."""
         encoder = self.actor_encoder if self.critic_encoder is None else self.critic_encoder
-        return self.critic_head(encoder(self._normalize(obs))).squeeze(-1)
+        return self.critic_head(encoder(self._normalize(obs))).squeeze(-1).to(self.log_std.dtype)
 
     def policy(self, obs: torch.Tensor):
         """``(mean [B, A], log_std [A])`` without the critic: what acting needs."""
-        return self.actor_head(self.actor_encoder(self._normalize(obs))), self.log_std
+        return self.actor_head(self.actor_encoder(self._normalize(obs))).to(self.log_std.dtype), self.log_std
 
     def forward(self, obs: torch.Tensor):
-        """``(mean [B, A], log_std [A], value [B])``."""
+        """``(mean [B, A], log_std [A], value [B])`` in the parameters' dtype: under bf16 autocast
+        (``runner.precision``) the log-probs, ratios and value targets computed from them stay float32."""
         actor, critic = self._features(obs)
-        return self.actor_head(actor), self.log_std, self.critic_head(critic).squeeze(-1)
+        dtype = self.log_std.dtype
+        return self.actor_head(actor).to(dtype), self.log_std, self.critic_head(critic).squeeze(-1).to(dtype)
 
     # ------------------------------------------------------------------ RL interface
     def act(self, obs: torch.Tensor, deterministic: bool = False, generator: Optional[torch.Generator] = None):

@@ -22,7 +22,7 @@ from torch import nn
 
 from quad_env.obs_layout import ObsLayout
 
-from .frames import frame_of
+from .frames import frame_of, full_precision
 
 
 class FrameInput(nn.Module):
@@ -57,6 +57,7 @@ class FrameInput(nn.Module):
         """F_i [B, 3, 3] of every row, from drone i's attitude R_i (body -> world)."""
         return frame_of(self.symmetry, obs[:, self.rot_slice].reshape(obs.shape[0], 3, 3))
 
+    @full_precision
     def forward(self, obs: torch.Tensor, F: Optional[torch.Tensor] = None) -> torch.Tensor:
         B = obs.shape[0]
         F = self.own_frame(obs) if F is None else F  # [B, 3, 3]

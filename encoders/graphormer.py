@@ -35,12 +35,13 @@ from torch import nn
 from quad_env.obs_layout import ObsLayout
 
 from .common import activation, mlp, read_obs, self_input_dim, self_keys, xavier_init_
-from .frames import SYMMETRIES, canonicalize, frame_of, own_rotation, typed_output, typed_to_world
+from .frames import SYMMETRIES, canonicalize, frame_of, full_precision, own_rotation, typed_output, typed_to_world
 
 NODE_INPUTS = 10  # per node, in its own frame: velocity (3), goal offset (3), body rates (3), is-self flag (1)
 POSE_CHANNELS = 4  # vector channels of a node's pose: its position and the 3 columns of its attitude
 
 
+@full_precision
 def rotate(R: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
     """R @ V for rotations R [B, N, 3, 3] and spatial-major vector blocks V [B, N, (H,) 3, C]."""
     if V.dim() == 5:
@@ -123,6 +124,7 @@ class EquivariantGraphormerLayer(nn.Module):
         return self.norm_ffn(u + self.ffn(u))  # [B, N, F] in v's frame
 
 
+@full_precision
 def build_graph(layout: ObsLayout, fields, edge_radius: Optional[float], symmetry: str = "se3"):
     """Node frames (of ``symmetry``) and canonical node inputs [B, N, NODE_INPUTS] from ``read_obs`` fields."""
     R_i = own_rotation(fields)  # [B, 3, 3]
@@ -216,7 +218,7 @@ class GraphormerEncoder(nn.Module):
         vec_world = rotate(g.F, f[..., m:].unflatten(-1, (3, m)))  # [B, N, 3, m]
         mean_vec = (vec_world * w.unsqueeze(-1)).sum(1) / count.unsqueeze(-1)  # [B, 3, m] world
         F_i = g.F[:, 0]
-        mean_vec = F_i.transpose(-1, -2) @ mean_vec  # [B, 3, m] in drone i's frame
+        mean_vec = rotate(F_i.transpose(-1, -2).unsqueeze(1), mean_vec.unsqueeze(1)).squeeze(1)  # [B, 3, m] frame i
 
         canon = canonicalize(self.layout, fields, F_i, groups=("self", "obstacle"))
         state = torch.cat([canon[k] for k in self_keys(self.layout)], dim=-1)  # [B, S]

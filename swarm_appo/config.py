@@ -28,6 +28,7 @@ from swarm_appo.checkpoint import atomic_write_bytes
 DEVICES = ("auto", "cpu", "cuda")
 WANDB_MODES = ("offline", "online", "disabled")
 LR_SCHEDULES = ("constant", "linear")
+PRECISIONS = ("auto", "fp32", "bf16")  # runner.precision (swarm_appo.precision resolves "auto")
 
 
 class ConfigError(ValueError):
@@ -157,6 +158,14 @@ class RunnerConfig:
     """Also stop after this many seconds of training (wall clock, this process); 0 = no limit."""
     device: str = "auto"
     """Learner device: "auto" (cuda when present, else cpu), "cpu", "cuda" or "cuda:<index>"."""
+    precision: str = "auto"
+    """The learner's matmul precision: "fp32", "bf16" (mixed precision: torch.autocast, fp32 weights, optimizer,
+    log-probs, V-trace and losses) or "auto": bf16 on a CUDA device with bf16, and on a CPU with native bf16
+    (AMX / AVX-512 BF16) for ``model.size: paper``; fp32 otherwise (``swarm_appo.precision``). The choice and
+    its reason are logged and written at the top of the run's config.yaml."""
+    inference_precision: str = "auto"
+    """The rollout workers' inference precision: "fp32", "bf16" or "auto", the same rule as ``precision``,
+    resolved by each worker on its own CPU."""
     checkpoint_every_s: float = 600.0
     """Seconds between checkpoints (a final one is always written at the end or on Ctrl-C)."""
     checkpoint_every_updates: int = 0
@@ -460,9 +469,11 @@ def _read_yaml_config(path: str, _seen: Tuple[str, ...] = ()) -> Dict[str, Any]:
     return _deep_merge(_read_yaml_config(os.path.join(os.path.dirname(path), base), _seen + (real,)), loaded)
 
 
-def save_config(cfg: TrainConfig, path: str | os.PathLike) -> None:
-    """Write the resolved config as YAML, atomically (readable by ``load_config`` and ``yaml.safe_load``)."""
+def save_config(cfg: TrainConfig, path: str | os.PathLike, notes: Sequence[str] = ()) -> None:
+    """Write the resolved config as YAML, atomically (readable by ``load_config`` and ``yaml.safe_load``);
+    ``notes`` become comment lines at the top (e.g. what ``auto`` values resolved to on this machine)."""
     text = "# Resolved swarm_appo config (every key). Load with swarm_appo.config.load_config.\n"
+    text += "".join(f"# {line}\n" for line in notes)
     text += yaml.safe_dump(config_to_dict(cfg), sort_keys=False, default_flow_style=None)
     atomic_write_bytes(path, text.encode())
 
@@ -539,6 +550,9 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _check(bool(r.name) and "/" not in r.name and "\\" not in r.name and r.name not in (".", ".."),
                "runner.name", "must be a plain folder name (no path separators) or null", r.name)
 
+    _check(r.precision in PRECISIONS, "runner.precision", f"must be one of {list(PRECISIONS)}", r.precision)
+    _check(r.inference_precision in PRECISIONS, "runner.inference_precision", f"must be one of {list(PRECISIONS)}",
+           r.inference_precision)
     _check(w.mode in WANDB_MODES, "wandb.mode", f"must be one of {list(WANDB_MODES)}", w.mode)
     _check(bool(w.project), "wandb.project", "must not be empty", w.project)
     return cfg

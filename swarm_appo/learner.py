@@ -16,6 +16,7 @@ import torch
 
 from swarm_appo.losses import appo_loss
 from swarm_appo.metrics import LagStats
+from swarm_appo.precision import autocast
 from swarm_appo.vtrace import fold_truncation_bootstrap, vtrace
 
 
@@ -41,9 +42,10 @@ def stack_fragments(fragments: List[Dict[str, Any]]) -> Dict[str, np.ndarray]:
 class Learner:
     """Owns the model being trained, its optimizer and the policy version counter."""
 
-    def __init__(self, model: torch.nn.Module, algo, device: torch.device, seed: int):
+    def __init__(self, model: torch.nn.Module, algo, device: torch.device, seed: int, precision: str = "fp32"):
         self.algo = algo
         self.device = device
+        self.precision = precision  # "fp32" | "bf16" (resolved): the forward passes run under autocast
         self.model = model.to(device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=algo.lr, betas=tuple(algo.adam_betas),
                                           eps=algo.adam_eps)
@@ -124,10 +126,11 @@ class Learner:
         T, b, D = obs.shape
         actions = t["actions"][:, cols]  # [T, b, A]
         old_logp = t["log_probs"][:, cols]  # [T, b]
-        log_prob, entropy, values = self.model.evaluate(obs.reshape(T * b, D), actions.reshape(T * b, -1))
+        with autocast(self.precision, self.device):  # bf16 matmuls; the model returns fp32 means and values
+            log_prob, entropy, values = self.model.evaluate(obs.reshape(T * b, D), actions.reshape(T * b, -1))
         log_prob, entropy, values = (x.reshape(T, b) for x in (log_prob, entropy, values))
 
-        with torch.no_grad():
+        with torch.no_grad(), autocast(self.precision, self.device):
             bootstrap = self.model.get_value(t["last_obs"][cols])  # [b]
             # Truncated steps bootstrap from the value of the true final observation, not the reset one.
             col_pos = torch.full((t["rewards"].shape[1],), -1, dtype=torch.long, device=obs.device)

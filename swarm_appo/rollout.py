@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from quad_env import EnvConfig, VecQuadEnv
+from swarm_appo.precision import autocast, resolve_precision
 
 
 def worker_seed(base_seed: int, worker_index: int, incarnation: int = 0) -> int:
@@ -41,7 +42,7 @@ class RolloutWorker:
     """Owns ``num_envs`` swarms and a policy copy; ``collect()`` returns one fragment."""
 
     def __init__(self, env_cfg: EnvConfig, model_factory, num_envs: int, rollout: int, seed: int,
-                 worker_id: int = 0, store_values: bool = False):
+                 worker_id: int = 0, store_values: bool = False, precision: str = "fp32"):
         torch.set_num_threads(1)  # one core per worker: batched inference is small, threads only contend
         self.worker_id = worker_id
         self.rollout = rollout
@@ -50,6 +51,8 @@ class RolloutWorker:
         self.generator = torch.Generator().manual_seed(seed)
         self.model = model_factory()
         self.model.eval()
+        # runner.inference_precision, "auto" resolved on this worker's own CPU (cluster nodes may differ)
+        self.precision, _ = resolve_precision(precision, torch.device("cpu"), self.model.config["size"])
         self.policy_version = -1
         self.obs = self.env.reset().copy()  # [B, D]
         B, D = self.env.num_drones, self.env.obs_dim
@@ -114,10 +117,11 @@ class RolloutWorker:
         )
 
     def _sample(self, obs: torch.Tensor) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self.store_values:
-            mean, log_std, value = self.model(obs)
-        else:  # the critic is not needed to act: skip it (about half the inference cost)
-            (mean, log_std), value = self.model.policy(obs), torch.zeros(obs.shape[0])
+        with autocast(self.precision, obs.device):  # the model returns fp32 means and values either way
+            if self.store_values:
+                mean, log_std, value = self.model(obs)
+            else:  # the critic is not needed to act: skip it (about half the inference cost)
+                (mean, log_std), value = self.model.policy(obs), torch.zeros(obs.shape[0])
         std = log_std.exp()
         noise = torch.randn(mean.shape, generator=self.generator)
         actions = mean + std * noise

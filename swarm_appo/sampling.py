@@ -49,9 +49,10 @@ class SerialSampler:
     """Round-robin over in-process workers; every fragment uses the newest weights (lag 0)."""
 
     def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
-                 rollout: int, seed: int, store_values: bool = False):
+                 rollout: int, seed: int, store_values: bool = False, precision: str = "fp32"):
         self.workers = [RolloutWorker(env_cfg, model_factory, envs_per_worker, rollout,
-                                      worker_seed(seed, i), worker_id=i, store_values=store_values)
+                                      worker_seed(seed, i), worker_id=i, store_values=store_values,
+                                      precision=precision)
                         for i in range(num_workers)]
         self._next = 0
         self._weights: Optional[Weights] = None
@@ -118,7 +119,7 @@ class RaySampler:
 
     def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
                  rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0,
-                 store_values: bool = False, scheduling_strategy: str = "DEFAULT",
+                 store_values: bool = False, precision: str = "fp32", scheduling_strategy: str = "DEFAULT",
                  ready_timeout_s: Optional[float] = None):
         """``scheduling_strategy="SPREAD"`` places the actors over all nodes of a cluster; with
         ``ready_timeout_s`` the constructor waits until every actor is placed and has compiled its kernels,
@@ -129,6 +130,7 @@ class RaySampler:
         self._args = (env_cfg, model_factory, envs_per_worker, rollout)
         self._seed = seed
         self._store_values = store_values
+        self._precision = precision
         self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0,
                                       scheduling_strategy=scheduling_strategy)(RayRolloutWorker)
         self._store = WeightsStore.remote()
@@ -160,7 +162,7 @@ class RaySampler:
         env_cfg, model_factory, envs_per_worker, rollout = self._args
         return self._remote_cls.remote(self._store, env_cfg, model_factory, envs_per_worker, rollout,
                                        worker_seed(self._seed, index, incarnation), index,
-                                       store_values=self._store_values)
+                                       store_values=self._store_values, precision=self._precision)
 
     def publish(self, version: int, state_dict: Dict[str, torch.Tensor]) -> None:
         ref = ray.put((version, state_dict))  # one object per version, shared by all workers

@@ -31,6 +31,7 @@ from swarm_appo.evaluate import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
 from swarm_appo.model import model_factory
+from swarm_appo.precision import resolve_precision
 from swarm_appo.sampling import RaySampler, SerialSampler, check_reachable, fragment_nbytes, init_ray
 
 log = logging.getLogger(__name__)
@@ -214,16 +215,21 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     validate(cfg)
     if cfg.runner.ray_address is not None and not cfg.runner.serial:
         check_reachable(cfg.runner.ray_address)  # before a run dir exists: a typo leaves nothing behind
+    device = pick_device(cfg.runner.device)
+    precision, why = resolve_precision(cfg.runner.precision, device, cfg.model.size)
     if resume_dir is None:
         run_dir = fresh_run_dir(Path(cfg.runner.run_dir), cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
     run_dir.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, run_dir / "config.yaml")
+    inference, inference_why = resolve_precision(cfg.runner.inference_precision, torch.device("cpu"), cfg.model.size)
+    precisions = (f"learner precision {precision} ({why}); rollout inference on this machine's CPU {inference} "
+                  f"({inference_why})")
+    save_config(cfg, run_dir / "config.yaml", notes=[f"on this machine: {precisions}"])
+    log.info(precisions)
 
     seed_everything(cfg.runner.seed)
-    device = pick_device(cfg.runner.device)
     layout = cfg.env.obs_layout()
     make_model = model_factory(layout, cfg.model)
-    learner = Learner(make_model(), cfg.algo, device, seed=cfg.runner.seed)
+    learner = Learner(make_model(), cfg.algo, device, seed=cfg.runner.seed, precision=precision)
     agent_steps = 0
     if state is not None:
         learner.load_state_dict(state["learner"])
@@ -244,7 +250,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     if cfg.runner.serial:
         num_workers = num_rollout_workers(cfg)
         sampler = SerialSampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
-                                sampler_seed, store_values=store_values)
+                                sampler_seed, store_values=store_values,
+                                precision=cfg.runner.inference_precision)
     else:
         init_ray(cfg.runner.ray_address)
         num_workers = num_rollout_workers(cfg)
@@ -256,7 +263,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
         try:
             sampler = RaySampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
                                  sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers),
-                                 store_values=store_values, **cluster_options)
+                                 store_values=store_values, precision=cfg.runner.inference_precision,
+                                 **cluster_options)
         except Exception:  # e.g. the cluster cannot host the workers: leave no wandb run open
             logger.close()
             raise
