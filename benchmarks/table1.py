@@ -4,10 +4,12 @@ then evaluated with ``swarm_appo.evaluate`` (no training aids), as mean +- std o
     python -m benchmarks.table1                                   # the default experiment (resumes where it stopped)
     python -m benchmarks.table1 --rows deepsets/none,deepsets/se3 --seeds 0,1,2 --agent-steps 3e6
     python -m benchmarks.table1 --train-scenarios static_same_goal,mix --episodes 50
+    python -m benchmarks.table1 --rows deepsets/none --compare runner.precision=fp32,bf16   # one recipe change
 
 A row is ``architecture/symmetry`` (``encoders.ARCHITECTURES`` x ``encoders.SYMMETRIES``); only ``model.encoder``
 and ``model.symmetry`` differ between rows (``--config`` is the recipe, ``--set key=value`` changes it for every
-row). Each training is an ordinary run directory ``<out>/runs/<train scenario>/<arch>-<symmetry>/seed<k>``;
+row; ``--compare KEY=V1,V2`` splits every row into one variant per value). Each training is an ordinary run
+directory ``<out>/runs/<train scenario>/<arch>-<symmetry>[-<key>-<value>]/seed<k>``;
 a finished one holds ``done.json`` and is skipped next time, an interrupted one resumes from its last checkpoint
 (one killed before its first checkpoint starts again), and an evaluated one keeps its ``eval_table1/``. So a
 killed experiment resumes where it stopped, and the table fills in row by row. Raising ``--agent-steps`` trains
@@ -42,7 +44,21 @@ EVAL_DIR = "eval_table1"
 
 
 # ----------------------------------------------------------------------------------------------- plan
-def parse_rows(text: str) -> List[Tuple[str, str]]:
+Row = Tuple[str, str, Optional[str]]  # (architecture, symmetry, "key=value" of --compare or None)
+
+
+def parse_compare(text: Optional[str]) -> List[Optional[str]]:
+    """``KEY=V1,V2`` -> ["KEY=V1", "KEY=V2"]; None -> [None] (no comparison)."""
+    if text is None:
+        return [None]
+    key, eq, values = text.partition("=")
+    vals = [v.strip() for v in values.split(",") if v.strip()]
+    if not eq or not key.strip() or len(vals) < 2:
+        raise ValueError(f"--compare {text!r} must be KEY=V1,V2[,...] (at least two values)")
+    return [f"{key.strip()}={v}" for v in dict.fromkeys(vals)]
+
+
+def parse_rows(text: str, compare: Optional[str] = None) -> List[Row]:
     import encoders
 
     rows = []
@@ -51,26 +67,34 @@ def parse_rows(text: str) -> List[Tuple[str, str]]:
         if arch not in encoders.ARCHITECTURES or symmetry not in encoders.SYMMETRIES:
             raise ValueError(f"row {item!r} must be architecture/symmetry with architecture in "
                              f"{list(encoders.ARCHITECTURES)} and symmetry in {list(encoders.SYMMETRIES)}")
-        rows.append((arch, symmetry))
+        rows.extend((arch, symmetry, setting) for setting in parse_compare(compare))
     if not rows:
         raise ValueError("--rows names no row")
     return list(dict.fromkeys(rows))
 
 
-def row_label(row: Tuple[str, str]) -> str:
-    return f"{row[0]}/{row[1]}"
+def _short(setting: str) -> Tuple[str, str]:
+    key, _, value = setting.partition("=")
+    return key.rsplit(".", 1)[-1], value
 
 
-def run_dir(out: Path, scenario: str, row: Tuple[str, str], seed: int) -> Path:
-    return out / "runs" / scenario / f"{row[0]}-{row[1]}" / f"seed{seed}"
+def row_label(row: Row) -> str:
+    label = f"{row[0]}/{row[1]}"
+    return label if row[2] is None else label + " {}={}".format(*_short(row[2]))
 
 
-def row_config(args, scenario: str, row: Tuple[str, str], seed: int):
-    """The recipe with this row's encoder and symmetry, scenario, seed and budget (validated, nothing written)."""
+def run_dir(out: Path, scenario: str, row: Row, seed: int) -> Path:
+    name = f"{row[0]}-{row[1]}" if row[2] is None else f"{row[0]}-{row[1]}-" + "-".join(_short(row[2]))
+    return out / "runs" / scenario / name.replace("/", "_") / f"seed{seed}"
+
+
+def row_config(args, scenario: str, row: Row, seed: int):
+    """The recipe with this row's encoder, symmetry (and --compare value), scenario, seed and budget (validated,
+    nothing written)."""
     from swarm_appo.config import load_config
 
     rd = run_dir(Path(args.out), scenario, row, seed)
-    overrides = [*args.set, f"model.encoder={row[0]}", f"model.symmetry={row[1]}", f"env.scenario={scenario}",
+    overrides = [*args.set, *([row[2]] if row[2] else []), f"model.encoder={row[0]}", f"model.symmetry={row[1]}", f"env.scenario={scenario}",
                  f"runner.seed={seed}", f"runner.total_agent_steps={args.agent_steps}",
                  f"runner.run_dir={rd.parent}", f"runner.name={rd.name}", "runner.final_eval_episodes=0",
                  f"wandb.group=table1-{scenario}", "wandb.tags=[table1]"]  # the trainer adds architecture/symmetry tags
@@ -272,6 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluation workers (swarm_appo.evaluate --workers; 0 = in-process, no Ray start-up)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a config override applied to every row (repeatable)")
+    p.add_argument("--compare", default=None, metavar="KEY=V1,V2",
+                   help="one config key to compare: every row is trained once per value (e.g. runner.precision)")
     p.add_argument("--figures", default=str(ROOT / "benchmarks" / "figures"), help="where the PNGs go")
     p.add_argument("--no-results", action="store_true", help="do not append to benchmarks/RESULTS.md")
     p.add_argument("--no-progress", action="store_true")
@@ -286,7 +312,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     args.agent_steps = int(args.agent_steps)
     try:
-        rows = parse_rows(args.rows)
+        rows = parse_rows(args.rows, args.compare)
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
         scenarios = [s.strip() for s in args.train_scenarios.split(",") if s.strip()]
         plan = [(sc, row, seed, row_config(args, sc, row, seed)) for sc in scenarios for seed in seeds
@@ -336,7 +362,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             n = {r: len(v) for r, v in by_row.items()}
             sections.append(f"**trained on `{sc}`, evaluated on `{es}`** ({args.episodes} episodes per seed, "
                             f"mean actions, no training aids)\n\n" + table_markdown(labels, by_row, speeds, n))
-        fig = plot_curves(curves, Path(args.figures) / f"table1_{sc}.png",
+        fig = plot_curves(curves, Path(args.figures) / f"{out.name}_{sc}.png",
                           f"training curves, {sc} (training episodes, with the training aids; running mean over "
                           f"{SMOOTH_RECORDS} iterations); mean over seeds, band min..max")
         if fig is not None:
@@ -350,7 +376,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         f"- commit: {commit(['encoders', 'swarm_appo', 'quad_env', 'configs'])}",
         f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}",
         f"- recipe: `{Path(args.config).relative_to(ROOT) if Path(args.config).is_relative_to(ROOT) else args.config}`"
-        + (f" with {' '.join(args.set)}" if args.set else "") + f"; {args.agent_steps:,} agent steps per run; "
+        + (f" with {' '.join(args.set)}" if args.set else "")
+        + (f"; compared: {args.compare}" if args.compare else "") + f"; {args.agent_steps:,} agent steps per run; "
         f"seeds {seeds}; {done} of {len(plan)} runs trained",
         "- cells: mean ± std over seeds (population std) of each seed's mean over its evaluation episodes; Rew = the "
         "paper's terms c1..c5, Shaping = the training-only terms; Col = drone, obstacle and room contacts after the "

@@ -113,7 +113,11 @@ def main(argv=None) -> None:
                 f"runner.run_dir={tmp}", f"runner.name={name}", *args.overrides])
             flops = flops_per_agent_step(cfg)
             result = train(cfg, progress=False)
-            m = measure_run(result.run_dir)
+            try:
+                m = measure_run(result.run_dir)
+            except RuntimeError as exc:  # too slow for this time budget: say so, keep the other rows
+                print(f"{name}: {exc}", flush=True)
+                continue
             # matmul-bound seconds per agent step, every core busy: each part at its precision's GEMM rate
             bound_s = (flops["inference"] / per_core[inference]
                        + epochs * flops["train_epoch"] / per_core[learner]) / cores

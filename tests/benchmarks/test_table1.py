@@ -3,6 +3,7 @@ writes the table and curves, and resumes where it stopped without retraining fin
 import json
 
 import pytest
+import yaml
 import torch
 
 from benchmarks import table1
@@ -42,7 +43,7 @@ def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_th
     table = (exp / "table1.md").read_text()
     assert "| deepsets/none | 1 |" in table and "| deepsets/se3 | 1 |" in table
     assert "| row | seeds | Rew |" in table and "Suc %" in table and "ColD" in table
-    assert (tmp_path / "fig" / "table1_static_same_goal.png").stat().st_size > 1000
+    assert (tmp_path / "fig" / "exp_static_same_goal.png").stat().st_size > 1000  # <out name>_<scenario>.png
 
     # a run killed before its first checkpoint (a run dir with a config only) starts again
     killed = exp / "runs" / "static_same_goal" / "deepsets-none" / "seed1"
@@ -68,6 +69,24 @@ def test_bad_rows_and_recipe_errors_before_training(tmp_path, capsys):
         run(tmp_path, "--rows", "deepsets/none", "--train-scenarios", "statc")
     assert "env.scenario" in capsys.readouterr().err
     assert not (tmp_path / "exp").exists()
+
+
+def test_compare_trains_every_row_once_per_value(tmp_path, one_thread):
+    assert run(tmp_path, "--rows", "deepsets/none", "--seeds", "0", "--compare", "runner.precision=fp32,bf16") == 0
+    runs = tmp_path / "exp" / "runs" / "static_same_goal"
+    assert sorted(p.name for p in runs.iterdir()) == ["deepsets-none-precision-bf16", "deepsets-none-precision-fp32"]
+    for value in ("fp32", "bf16"):
+        cfg = yaml.safe_load((runs / f"deepsets-none-precision-{value}" / "seed0" / "config.yaml").read_text())
+        assert cfg["runner"]["precision"] == value
+    table = (tmp_path / "exp" / "table1.md").read_text()
+    assert "| deepsets/none precision=fp32 | 1 |" in table and "| deepsets/none precision=bf16 | 1 |" in table
+    assert "compared: runner.precision=fp32,bf16" in table
+
+
+@pytest.mark.parametrize("bad", ["runner.precision", "runner.precision=bf16", "=a,b"])
+def test_compare_needs_a_key_and_two_values(bad):
+    with pytest.raises(ValueError, match="KEY=V1,V2"):
+        table1.parse_compare(bad)
 
 
 def test_table_markdown_mean_std_over_seeds_and_best_in_bold():
