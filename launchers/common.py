@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import signal
+import sys
 from pathlib import Path
 from typing import List, MutableMapping, Optional
 
@@ -48,6 +49,17 @@ def print_result(result) -> None:
         print(f"  python -m swarm_appo.evaluate --checkpoint {run} --random-baseline   # the paper's Table 1")
         print(f"  python -m swarm_appo.export --checkpoint {run} --out export/{run.name}   # actor for a robot")
         print(f"  python -m launchers.local --resume {run}                             # train on")
+
+
+def report_training_error(exc: BaseException) -> int:
+    """Print why training stopped (the cause's traceback for a learner bug, one paragraph for a run that cannot
+    learn) and return the exit code 1."""
+    import traceback
+
+    if exc.__cause__ is not None:
+        traceback.print_exception(exc.__cause__, file=sys.stderr)
+    print(f"error: {exc}", file=sys.stderr)
+    return 1
 
 
 def _interrupt(signum, frame):

@@ -17,7 +17,8 @@ from typing import List, Optional
 
 os.environ.setdefault("WANDB_SILENT", "true")
 
-from launchers.common import add_config_arguments, load_cli_config, print_result, stop_on_sigterm  # noqa: E402
+from launchers.common import (add_config_arguments, load_cli_config, print_result, report_training_error,  # noqa: E402
+                              stop_on_sigterm)
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -47,7 +48,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from swarm_appo.config import ConfigError
-    from swarm_appo.trainer import train
+    from swarm_appo.trainer import TrainingError, train
 
     if args.resume:
         problem = resume_problem(args.resume)
@@ -69,6 +70,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ConnectionError as exc:  # runner.ray_address: no cluster there
         print(f"cannot join the Ray cluster of runner.ray_address: {exc}", file=sys.stderr)
         return 1
+    except TrainingError as exc:
+        return report_training_error(exc)
     print_result(result)
     return 130 if result.interrupted else 0
 

@@ -38,7 +38,7 @@ from typing import Any, Dict, List, Optional, Tuple
 os.environ.setdefault("WANDB_SILENT", "true")
 
 from launchers.common import (add_config_arguments, enable_token_auth_if_available, load_cli_config,  # noqa: E402
-                              print_result, stop_on_sigterm)
+                              print_result, report_training_error, stop_on_sigterm)
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 CONFIG_ENV = "SWARM_APPO_CONFIG"  # the resolved config (YAML) travels to the cluster in this variable
@@ -348,7 +348,7 @@ def cmd_run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from swarm_appo.cluster import read_placement
     from swarm_appo.config import ConfigError, config_from_dict, validate, yaml_load
-    from swarm_appo.trainer import fresh_run_dir, train
+    from swarm_appo.trainer import TrainingError, fresh_run_dir, train
 
     text = os.environ.get(CONFIG_ENV)
     if not text:
@@ -365,7 +365,10 @@ def cmd_run(args) -> int:
     cfg.runner.run_dir, cfg.runner.name = str(root), run_dir.name
     print(f"run directory: {run_dir} (on {socket.gethostname()})", flush=True)
     stop_on_sigterm()
-    result = train(cfg, progress=False, on_iteration=ProgressLines(run_dir, args.log_every_s))
+    try:
+        result = train(cfg, progress=False, on_iteration=ProgressLines(run_dir, args.log_every_s))
+    except TrainingError as exc:
+        return report_training_error(exc)
     print_result(result)
     placement = read_placement(result.run_dir)
     if placement:

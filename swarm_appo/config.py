@@ -124,6 +124,10 @@ class AlgoConfig:
     """Clip of the importance weight on the policy-gradient advantage; None = no clipping."""
     vtrace_lambda: float = 1.0
     """V-trace trace factor lambda (IMPALA, Remark 2): 1 = plain V-trace; e.g. 0.95 cuts variance like GAE."""
+    max_consecutive_skips: int = 50
+    """Stop the run with an error (exit 1, naming the checkpoint to resume) after this many consecutive skipped
+    updates (non-finite loss or gradient: the run cannot learn); 0 = never stop. Skips are counted in the
+    metrics (``losses/skipped_updates``) and the progress bar either way."""
     lr_schedule: str = "constant"
     """"constant" (the paper) or "linear": lr * (1 - agent_steps / runner.total_agent_steps), down to 0 at the
     budget (Sample Factory's linear decay). A run of the 2-core recipe at constant 3e-4 collapsed after ~30 M steps
@@ -501,6 +505,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check(bool(m.head_activation), "model.head_activation", "must name an activation", m.head_activation)
 
     _check(a.lr > 0, "algo.lr", "must be > 0", a.lr)
+    _check(a.max_consecutive_skips >= 0, "algo.max_consecutive_skips", "must be >= 0 (0 = never stop)",
+           a.max_consecutive_skips)
     _check(a.lr_schedule in LR_SCHEDULES, "algo.lr_schedule", f"must be one of {list(LR_SCHEDULES)}", a.lr_schedule)
     _check(0 <= a.gamma <= 1, "algo.gamma", "must be in [0, 1]", a.gamma)
     _check(0 <= a.vtrace_lambda <= 1, "algo.vtrace_lambda", "must be in [0, 1]", a.vtrace_lambda)

@@ -53,6 +53,7 @@ class Learner:
         self.version = 0  # bumped once per train() call; published with the weights
         self.num_updates = 0  # optimizer steps taken
         self.skipped_updates = 0  # non-finite loss or gradient
+        self.consecutive_skips = 0  # skipped updates since the last good one (the trainer stops a run at a limit)
 
     # ------------------------------------------------------------------ weights
     def cpu_weights(self) -> Tuple[int, Dict[str, torch.Tensor]]:
@@ -160,6 +161,7 @@ class Learner:
         loss, stats = self._loss(t, cols, valid, final_idx)
         if not torch.isfinite(loss):
             self.skipped_updates += 1
+            self.consecutive_skips += 1
             warnings.warn(f"non-finite loss ({loss.item()}) at update {self.num_updates}: update skipped")
             return None
         self.optimizer.zero_grad(set_to_none=True)
@@ -168,10 +170,12 @@ class Learner:
         if not torch.isfinite(grad_norm):
             self.optimizer.zero_grad(set_to_none=True)
             self.skipped_updates += 1
+            self.consecutive_skips += 1
             warnings.warn(f"non-finite gradient norm at update {self.num_updates}: update skipped")
             return None
         self.optimizer.step()
         self.num_updates += 1
+        self.consecutive_skips = 0
         stats = {k: float(v) for k, v in stats.items()}
         stats["grad_norm"] = float(grad_norm)
         stats["loss"] = float(loss.detach())

@@ -14,6 +14,8 @@ from __future__ import annotations
 import logging
 import os
 import random
+import signal
+import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass
@@ -36,6 +38,39 @@ from swarm_appo.sampling import RaySampler, SerialSampler, check_reachable, frag
 
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = 1
+
+
+class TrainingError(RuntimeError):
+    """Training stopped by an error (the run directory is intact; the message names the checkpoint to resume)."""
+
+
+class GracefulStop:
+    """While active, SIGINT (Ctrl-C) and SIGTERM only set ``requested``: the loop stops at the next iteration
+    boundary, so the final checkpoint is a state the run really passed through (whole learner iterations,
+    published weights, no untrained fragment counted). A second Ctrl-C raises KeyboardInterrupt at once.
+    Outside the main thread (signals cannot be caught there) it does nothing."""
+
+    def __init__(self):
+        self.requested: Optional[str] = None
+        self._previous: Dict[int, Any] = {}
+
+    def __enter__(self) -> "GracefulStop":
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(signum).name
+        log.warning("%s: stopping after this learner iteration, with a final checkpoint (Ctrl-C again to stop at "
+                    "once, keeping the last checkpoint)", self.requested)
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()
 
 
 @dataclass
@@ -292,6 +327,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                                 keep_last=cfg.runner.keep_checkpoints)
 
     # ---------------------------------------------------------------- the loop
+    # agent_steps counts trained fragments only: a batch is counted when the learner has trained on it, and a
+    # batch still being collected when the run stops is dropped, so a checkpoint never counts untrained steps.
     batch: List[Dict[str, Any]] = []
     episodes: List[Dict[str, Any]] = []
     timers = defaultdict(float)  # driver wall time per phase, and worker time per phase
@@ -300,9 +337,13 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     last_ckpt: Optional[Path] = None
     last_reward: Optional[float] = None
     interrupted = False
+    mid_iteration = False  # the learner is between its first update and publishing the new version
+    stop = GracefulStop()
     try:
         time_limit = cfg.runner.time_limit_s or float("inf")
-        while agent_steps < cfg.runner.total_agent_steps and time.perf_counter() - t_start < time_limit:
+        stop.__enter__()
+        while (agent_steps < cfg.runner.total_agent_steps and time.perf_counter() - t_start < time_limit
+               and stop.requested is None):
             t0 = time.perf_counter()
             frag = sampler.get()  # [T, B] fragment
             timers["wait"] += time.perf_counter() - t0
@@ -315,22 +356,25 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                 timers["fragment_bytes"] += fragment_nbytes(frag)
             if placement is not None:
                 placement.count(frag)
-            agent_steps += frag["num_agent_steps"]
             episodes.extend(frag["episode_stats"])
             batch.append(frag)
-            if sum(f["num_agent_steps"] for f in batch) < cfg.algo.batch_size:
+            batch_steps = sum(f["num_agent_steps"] for f in batch)
+            if batch_steps < cfg.algo.batch_size:
                 continue
 
             t1 = time.perf_counter()
+            agent_steps += batch_steps
             lr = scheduled_lr(cfg, agent_steps)
             for group in learner.optimizer.param_groups:
                 group["lr"] = lr
+            mid_iteration = True
             stats = learner.train(batch)
             timers["learner"] += time.perf_counter() - t1
-            timers["learner_samples"] += sum(f["num_agent_steps"] for f in batch)
+            timers["learner_samples"] += batch_steps
             batch = []
             t2 = time.perf_counter()
             sampler.publish(*learner.cpu_weights())
+            mid_iteration = False
             timers["publish"] += time.perf_counter() - t2
 
             # ------------------------------------------------------------ logging
@@ -364,26 +408,46 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             t_log, steps_at_log = now, agent_steps
             if bar is not None:
                 bar.update(progress_units(cfg, agent_steps, time.perf_counter() - t_start) - bar.n)
+                skipped = {"skipped": learner.skipped_updates} if learner.skipped_updates else {}
                 bar.set_postfix(steps=f"{agent_steps:,}", sps=f"{record['charts/sps']:.0f}",
                                 reward=f"{last_reward:.2f}" if last_reward is not None else "-",
-                                lag=f"{record['lag/mean']:.1f}", refresh=False)
+                                lag=f"{record['lag/mean']:.1f}", **skipped, refresh=False)
+            limit = cfg.algo.max_consecutive_skips
+            if limit and learner.consecutive_skips >= limit:
+                raise TrainingError(
+                    f"{learner.consecutive_skips} consecutive updates skipped (non-finite loss or gradient; "
+                    f"algo.max_consecutive_skips={limit}): this run cannot learn. Check the reward and the "
+                    f"learning rate; the run directory {run_dir} is intact and its last checkpoint ({last_ckpt}) "
+                    f"precedes the failure; resume it with --resume {run_dir}")
             every_updates = cfg.runner.checkpoint_every_updates
             by_updates = every_updates and learner.version % every_updates == 0
             if now - t_ckpt >= cfg.runner.checkpoint_every_s or by_updates:
                 last_ckpt = checkpoint(last_reward)
                 t_ckpt = time.perf_counter()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # a second Ctrl-C: stop now
         interrupted = True
-        log.warning("interrupted: writing a final checkpoint to %s", run_dir)
+        if mid_iteration:
+            log.warning("interrupted inside a learner iteration: no final checkpoint (its weights match no "
+                        "published version); the last one is %s", last_ckpt)
+        else:
+            log.warning("interrupted: writing a final checkpoint to %s", run_dir)
     except Exception as exc:
         sampler.close()
         logger.close()
         if bar is not None:
             bar.close()
-        raise RuntimeError(f"training stopped by an error in the learner loop ({type(exc).__name__}: {exc}). "
-                           f"The run directory {run_dir} is intact; resume it from its last checkpoint "
-                           f"({last_ckpt}) with --resume {run_dir}") from exc
-    last_ckpt = checkpoint(last_reward)
+        if isinstance(exc, TrainingError):
+            raise
+        raise TrainingError(f"training stopped by an error in the learner loop ({type(exc).__name__}: {exc}). "
+                            f"The run directory {run_dir} is intact; resume it from its last checkpoint "
+                            f"({last_ckpt}) with --resume {run_dir}") from exc
+    finally:
+        stop.__exit__()
+    if stop.requested is not None:
+        interrupted = True
+        log.warning("%s: stopped at an iteration boundary, writing a final checkpoint to %s", stop.requested, run_dir)
+    if not (interrupted and mid_iteration):
+        last_ckpt = checkpoint(last_reward)
     if placement is not None:
         try:
             placement.set_workers(sampler.worker_locations())  # replacements may sit elsewhere

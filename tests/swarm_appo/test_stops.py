@@ -1,0 +1,107 @@
+"""How a run stops: SIGTERM / Ctrl-C at an iteration boundary (the final checkpoint is a state the run really
+passed through), and a run that cannot learn stops loudly instead of exiting 0."""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import threading
+
+import pytest
+
+from launchers import local
+from swarm_appo.checkpoint import load_checkpoint
+from swarm_appo.trainer import TrainingError, train
+
+from .test_training import read_metrics, tiny_config, tiny_overrides
+
+# tiny_config: 2 swarms x 2 drones x 16 steps = 64 agent steps per fragment; batch 128 = 2 fragments per
+# iteration; 8 trajectories per batch, 8 per minibatch -> 1 minibatch x 2 epochs = 2 updates per iteration
+STEPS_PER_ITERATION = 128
+UPDATES_PER_ITERATION = 2
+
+
+@pytest.fixture
+def sigterm_as_interrupt():
+    """What the launchers do (``stop_on_sigterm``): a SIGTERM outside the loop must not kill pytest."""
+    previous = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    yield
+    signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_sigterm_at_a_random_moment_stops_at_an_iteration_boundary(tmp_path, sigterm_as_interrupt, seed):
+    cfg = tiny_config(tmp_path, f"t{seed}", **{"algo.batch_size": 128, "runner.total_agent_steps": 10**7,
+                                                "runner.final_eval_episodes": 0})
+    rng = random.Random(seed)
+    timer = []
+
+    def on_iteration(version, sampler):  # once the loop runs: a SIGTERM 0-150 ms later, anywhere in the loop
+        if not timer:
+            timer.append(threading.Timer(rng.uniform(0.0, 0.15), os.kill, (os.getpid(), signal.SIGTERM)))
+            timer[0].start()
+
+    result = train(cfg, progress=False, on_iteration=on_iteration)
+    timer[0].join()
+    assert result.interrupted and result.stopped_by == "interrupted"
+    state = load_checkpoint(result.checkpoint)
+    version = state["learner"]["version"]
+    assert version >= 1
+    # every counter describes the same whole number of iterations: no partial update, no untrained fragment
+    assert state["learner"]["num_updates"] == UPDATES_PER_ITERATION * version
+    assert state["agent_steps"] == STEPS_PER_ITERATION * version == result.agent_steps
+    logged = [r["global_step"] for r in read_metrics(result.run_dir) if "losses/loss" in r]
+    assert logged[-1] == state["agent_steps"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored after the run
+
+
+def test_a_run_that_cannot_learn_stops_with_an_error_naming_the_checkpoint(tmp_path, monkeypatch, capsys):
+    from swarm_appo import learner as learner_module
+
+    real_appo_loss = learner_module.appo_loss
+
+    def nan_loss(*args, **kwargs):  # e.g. a reward term that became inf: every loss is non-finite
+        loss, stats = real_appo_loss(*args, **kwargs)
+        return loss * float("nan"), stats
+
+    monkeypatch.setattr(learner_module, "appo_loss", nan_loss)
+    argv = ["--no-progress", *tiny_overrides(tmp_path, "nan", **{"algo.max_consecutive_skips": 6,
+                                                                   "runner.total_agent_steps": 10**6})]
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.warns(UserWarning, match="skipped"):
+            code = local.main(argv)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "6 consecutive updates skipped" in err and "algo.max_consecutive_skips=6" in err
+    assert f"--resume {tmp_path / 'nan'}" in err
+    records = [r for r in read_metrics(tmp_path / "nan") if "losses/skipped_updates" in r]
+    assert records and records[-1]["losses/skipped_updates"] >= 6  # counted in the metrics
+
+
+def test_skips_below_the_limit_do_not_stop_a_run(tmp_path, monkeypatch):
+    from swarm_appo import learner as learner_module
+
+    real_appo_loss = learner_module.appo_loss
+    calls = []
+
+    def sometimes_nan(*args, **kwargs):  # every third update is non-finite: never 3 in a row
+        loss, stats = real_appo_loss(*args, **kwargs)
+        calls.append(1)
+        return (loss * float("nan") if len(calls) % 3 == 0 else loss), stats
+
+    monkeypatch.setattr(learner_module, "appo_loss", sometimes_nan)
+    cfg = tiny_config(tmp_path, "some", **{"algo.max_consecutive_skips": 2, "runner.final_eval_episodes": 0})
+    with pytest.warns(UserWarning, match="skipped"):
+        result = train(cfg, progress=False)
+    assert result.agent_steps >= cfg.runner.total_agent_steps
+    assert load_checkpoint(result.checkpoint)["learner"]["skipped_updates"] >= 1
+
+
+def test_max_consecutive_skips_is_checked(tmp_path):
+    from swarm_appo.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"algo\.max_consecutive_skips"):
+        tiny_config(tmp_path, "x", **{"algo.max_consecutive_skips": -1})
