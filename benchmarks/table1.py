@@ -94,7 +94,8 @@ def row_config(args, scenario: str, row: Row, seed: int):
     from swarm_appo.config import load_config
 
     rd = run_dir(Path(args.out), scenario, row, seed)
-    overrides = [*args.set, *([row[2]] if row[2] else []), f"model.encoder={row[0]}", f"model.symmetry={row[1]}", f"env.scenario={scenario}",
+    overrides = [*args.set, *([row[2]] if row[2] else []), f"model.encoder={row[0]}", f"model.symmetry={row[1]}",
+                 f"env.scenario={scenario}",
                  f"runner.seed={seed}", f"runner.total_agent_steps={args.agent_steps}",
                  f"runner.run_dir={rd.parent}", f"runner.name={rd.name}", "runner.final_eval_episodes=0",
                  f"wandb.group=table1-{scenario}", "wandb.tags=[table1]"]  # the trainer adds architecture/symmetry tags

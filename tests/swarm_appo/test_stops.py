@@ -11,7 +11,7 @@ import pytest
 
 from launchers import local
 from swarm_appo.checkpoint import load_checkpoint
-from swarm_appo.trainer import TrainingError, train
+from swarm_appo.trainer import train
 
 from .test_training import read_metrics, tiny_config, tiny_overrides
 
