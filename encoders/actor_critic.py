@@ -44,7 +44,8 @@ class ActorCritic(nn.Module):
         size: size preset of the encoder and the heads, "paper" | "small".
         share_encoder: actor and critic use one encoder (the paper: separate weights, the default).
         action_dim: size of the action (4 rotor commands).
-        head_hidden: hidden width of the actor and critic heads; None = the size preset's (paper 256, small 64).
+        head_hidden: hidden width of the actor and critic heads; None = the size preset's (paper 256, small 64);
+            0 = linear heads (one Linear from the encoder output, as Sample Factory's action and value heads).
         head_activation: nonlinearity of the heads.
         init_log_std: initial value of the learned log standard deviation.
         normalize_obs: scale each observation field by its running RMS norm first (``FieldScaleNorm``,
@@ -90,8 +91,9 @@ class ActorCritic(nn.Module):
         self.actor_encoder = make_encoder(encoder, layout, symmetry, size, **encoder_kwargs)
         self.critic_encoder = None if share_encoder else make_encoder(encoder, layout, symmetry, size, **encoder_kwargs)
         out_dim = self.actor_encoder.out_dim
-        self.actor_head = xavier_init_(mlp([out_dim, head_hidden, action_dim], head_activation, last_act=False))
-        self.critic_head = xavier_init_(mlp([out_dim, head_hidden, 1], head_activation, last_act=False))
+        hidden = [head_hidden] if head_hidden else []  # 0: linear heads (Sample Factory's, for like-for-like runs)
+        self.actor_head = xavier_init_(mlp([out_dim, *hidden, action_dim], head_activation, last_act=False))
+        self.critic_head = xavier_init_(mlp([out_dim, *hidden, 1], head_activation, last_act=False))
         with torch.no_grad():
             self.actor_head[-1].bias.fill_(float(init_action_mean))
             self.actor_head[-1].weight.mul_(float(init_actor_out_scale))

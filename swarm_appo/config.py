@@ -58,7 +58,8 @@ class ModelConfig:
     share_encoder: bool = False
     """Actor and critic share one encoder; False (the paper, Sample Factory's default) gives each its own."""
     head_hidden: Optional[int] = None
-    """Hidden width of the actor and critic MLP heads on top of the encoder; null = the size preset's (256 / 64)."""
+    """Hidden width of the actor and critic MLP heads on top of the encoder; null = the size preset's (256 / 64);
+    0 = linear heads (one Linear each, like Sample Factory's: for like-for-like comparisons with it)."""
     head_activation: str = "tanh"
     """Nonlinearity of the heads (the paper uses tanh)."""
     init_log_std: float = 0.0
@@ -498,7 +499,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check_scenario(cfg.env)
     m, a, r, w = cfg.model, cfg.algo, cfg.runner, cfg.wandb
     _check_model(cfg)
-    _check(m.head_hidden is None or m.head_hidden >= 1, "model.head_hidden", "must be >= 1 or null", m.head_hidden)
+    _check(m.head_hidden is None or m.head_hidden >= 0, "model.head_hidden", "must be >= 0 (0 = linear heads) or null",
+           m.head_hidden)
     _check(m.init_actor_out_scale >= 0, "model.init_actor_out_scale", "must be >= 0", m.init_actor_out_scale)
     _check(-1.0 <= m.init_action_mean <= 1.0, "model.init_action_mean", "must be in [-1, 1] (the action range)",
            m.init_action_mean)

@@ -107,6 +107,19 @@ def test_small_actor_output_init_starts_at_the_constant_mean_action():
     assert narrow.config["init_actor_out_scale"] == 0.01  # rebuilt identically from a checkpoint
 
 
+def test_head_hidden_zero_gives_linear_heads():
+    layout = ObsLayout(3)
+    model = ActorCritic(layout, encoder="deepsets", head_hidden=0, init_action_mean=0.053)
+    out_dim = model.actor_encoder.out_dim
+    for head, width in ((model.actor_head, 4), (model.critic_head, 1)):
+        assert [type(m) for m in head] == [torch.nn.Linear]
+        assert (head[0].in_features, head[0].out_features) == (out_dim, width)
+    obs = torch.as_tensor(random_obs(layout, 8, np.random.default_rng(0)), dtype=torch.float32)
+    mean, _, value = model(obs)
+    assert mean.shape == (8, 4) and value.shape == (8,)
+    assert torch.all(model.actor_head[0].bias == 0.053)
+
+
 def test_unknown_encoder_in_actor_critic():
     with pytest.raises(ValueError, match="deepsets"):
         ActorCritic(ObsLayout(), encoder="nope")
