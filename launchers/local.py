@@ -72,6 +72,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 1
     except TrainingError as exc:
         return report_training_error(exc)
+    except ConfigError as exc:  # what only this machine can tell, e.g. runner.device=cuda without a GPU
+        print(f"config error: {exc}", file=sys.stderr)
+        return 2
     print_result(result)
     return 130 if result.interrupted else 0
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
+import math
 import os
 import re
 import types
@@ -63,7 +64,7 @@ class ModelConfig:
     head_activation: str = "tanh"
     """Nonlinearity of the heads (the paper uses tanh)."""
     init_log_std: float = 0.0
-    """Initial log standard deviation of the Gaussian policy (learned, state-independent)."""
+    """Initial log standard deviation of the Gaussian policy (learned, state-independent), in [-10, 2]."""
     normalize_obs: bool = False
     """Divide each observation field by the running RMS of its norm (one scalar per field; rotations and the
     mask untouched), which keeps the SE(3) encoders exactly equivariant. The learner updates the statistics
@@ -347,6 +348,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         raise wrong
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):  # every float of the tree is a finite quantity; None where "off" is meant
+                raise ConfigError(f"config key {key!r} must be a finite number, got {value}")
             return float(value)
         raise wrong
     if tp is str:
@@ -501,6 +504,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check_model(cfg)
     _check(m.head_hidden is None or m.head_hidden >= 0, "model.head_hidden", "must be >= 0 (0 = linear heads) or null",
            m.head_hidden)
+    _check(-10.0 <= m.init_log_std <= 2.0, "model.init_log_std", "must be in [-10, 2] (std 4.5e-5 .. 7.4 for actions "
+           "in [-1, 1])", m.init_log_std)
     _check(m.init_actor_out_scale >= 0, "model.init_actor_out_scale", "must be >= 0", m.init_actor_out_scale)
     _check(-1.0 <= m.init_action_mean <= 1.0, "model.init_action_mean", "must be in [-1, 1] (the action range)",
            m.init_action_mean)
@@ -537,7 +542,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         if r.serial:
             raise ConfigError(f"runner.serial=true runs without Ray, but runner.ray_address is {r.ray_address!r}: "
                               f"set runner.serial=false to run on the cluster, or runner.ray_address=null")
-    _check(r.seed >= 0, "runner.seed", "must be >= 0", r.seed)
+    _check(0 <= r.seed < 2**63, "runner.seed", "must be in [0, 2^63)", r.seed)
     _check(r.num_workers >= 0, "runner.num_workers", "must be >= 0 (0 = one per core)", r.num_workers)
     _check(r.envs_per_worker >= 1, "runner.envs_per_worker", "must be >= 1", r.envs_per_worker)
     _check(r.max_fragments_in_flight >= 0, "runner.max_fragments_in_flight", "must be >= 0 (0 = 2 per worker)",

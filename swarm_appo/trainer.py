@@ -28,7 +28,7 @@ import torch
 from quad_env import REWARD_TERMS, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
-from swarm_appo.config import TrainConfig, config_from_dict, config_to_dict, save_config, validate
+from swarm_appo.config import ConfigError, TrainConfig, config_from_dict, config_to_dict, save_config, validate
 from swarm_appo.evaluate import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
@@ -111,11 +111,17 @@ def fresh_run_dir(root: Path, name: str) -> Path:
 
 
 def pick_device(name: str) -> torch.device:
+    """The learner's device for ``runner.device``; ConfigError (before any run directory exists) if it is absent."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("runner.device=cuda but no CUDA device is available; use 'auto' or 'cpu'")
-    return torch.device(name)
+    device = torch.device(name)
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ConfigError(f"runner.device={name} but this machine has no CUDA device; use 'auto' or 'cpu'")
+        if device.index is not None and device.index >= count:
+            raise ConfigError(f"runner.device={name} but this machine has {count} CUDA device(s) (0..{count - 1})")
+    return device
 
 
 def seed_everything(seed: int) -> None:

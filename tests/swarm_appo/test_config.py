@@ -269,3 +269,73 @@ def test_base_config_errors_name_the_file(tmp_path):
     (tmp_path / "d.yaml").write_text("base: ../configs/paper.yaml\nalgo: {lrr: 1}\n")
     with pytest.raises(ConfigError, match="d.yaml.*algo.lrr"):
         load_config(str(tmp_path / "d.yaml"))
+
+
+# ----------------------------------------------------------------------------------------------- fuzz: non-finite
+def _float_keys(cls, prefix=""):
+    """(dotted key, tuple length or None) of every float field in the config tree, tuples of floats included."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp, key = hints[f.name], f"{prefix}{f.name}"
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if typing.get_origin(tp) is typing.Union and len(args) == 1:
+            tp = args[0]  # Optional[X] -> X
+        if dataclasses.is_dataclass(tp):
+            yield from _float_keys(tp, f"{key}.")
+        elif tp is float:
+            yield key, None
+        elif typing.get_origin(tp) is tuple and typing.get_args(tp) and typing.get_args(tp)[0] is float:
+            default = getattr(cls(), f.name)
+            yield key, len(default) if default is not None else 3
+
+
+FLOAT_KEYS = sorted(_float_keys(TrainConfig))
+
+
+def test_the_config_tree_has_many_float_fields():
+    assert len(FLOAT_KEYS) >= 60  # the fuzz below covers every one of them
+    assert ("algo.lr", None) in FLOAT_KEYS and ("env.reward.pos", None) in FLOAT_KEYS
+
+
+@pytest.mark.parametrize("bad", [".inf", "-.inf", ".nan"])
+def test_every_non_finite_float_is_a_config_error_naming_its_key(bad):
+    """A few hundred generated bad overrides (every float field x inf, -inf, nan): each a ConfigError naming
+    the key, none a traceback from deeper down."""
+    failures = []
+    for key, length in FLOAT_KEYS:
+        value = bad if length is None else "[" + ", ".join([bad] + ["0.5"] * (length - 1)) + "]"
+        try:
+            validate(load_config(None, [f"{key}={value}"]))
+            failures.append(f"{key}={value}: accepted")
+        except ConfigError as exc:
+            if key not in str(exc):
+                failures.append(f"{key}={value}: message does not name the key: {exc}")
+        except Exception as exc:  # noqa: BLE001 - the point is that nothing else escapes
+            failures.append(f"{key}={value}: {type(exc).__name__}: {exc}")
+    assert not failures, "\n".join(failures)
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("model.init_log_std=1e6", "model.init_log_std"), ("model.init_log_std=-50", "model.init_log_std"),
+    ("runner.seed=1e30", "runner.seed"),
+])
+def test_finite_but_absurd_values_are_errors(override, fragment):
+    with pytest.raises(ConfigError, match=fragment.replace(".", r"\.")):
+        validate(load_config(None, [override]))
+
+
+def test_a_cuda_device_that_is_not_there_fails_before_the_run_dir(tmp_path, monkeypatch):
+    import torch
+
+    from swarm_appo.trainer import train
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    cfg = load_config(None, ["runner.device=cuda:0", f"runner.run_dir={tmp_path}", "runner.serial=true",
+                             "wandb.mode=disabled"])
+    with pytest.raises(ConfigError, match=r"runner\.device=cuda:0"):
+        train(cfg, progress=False)
+    assert not any(tmp_path.iterdir())
