@@ -141,9 +141,17 @@ class ActorCritic(nn.Module):
         return self.actor_head(actor).to(dtype), self.log_std, self.critic_head(critic).squeeze(-1).to(dtype)
 
     # ------------------------------------------------------------------ RL interface
-    def act(self, obs: torch.Tensor, deterministic: bool = False, generator: Optional[torch.Generator] = None):
-        """Sample (or take the mean of) the unclipped Gaussian: ``(actions [B, A], log_prob [B], value [B])``."""
-        mean, log_std, value = self(obs)
+    def act(self, obs: torch.Tensor, deterministic: bool = False, generator: Optional[torch.Generator] = None,
+            with_value: bool = True):
+        """Sample (or take the mean of) the unclipped Gaussian: ``(actions [B, A], log_prob [B], value [B])``.
+
+        The one definition of acting, for rollout workers (sampling), evaluation (the mean, or a seeded sample)
+        and tests. ``with_value=False`` skips the critic (about half the cost of acting) and returns zeros for
+        the value. The noise is ``torch.randn(mean.shape, generator=generator)``: one draw per action entry."""
+        if with_value:
+            mean, log_std, value = self(obs)
+        else:
+            (mean, log_std), value = self.policy(obs), obs.new_zeros(obs.shape[0], dtype=self.log_std.dtype)
         if deterministic:
             actions = mean
         else:

@@ -77,11 +77,8 @@ def model_policy(model: torch.nn.Module, deterministic: bool = True,
 
     @torch.no_grad()
     def act(obs: np.ndarray) -> np.ndarray:
-        mean, log_std = model.policy(torch.from_numpy(obs))  # [M, 4], [4]
-        if deterministic:
-            return mean.numpy()
-        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
-        return (mean + noise * torch.exp(log_std)).numpy()
+        actions, _, _ = model.act(torch.from_numpy(obs), deterministic, generator, with_value=False)  # [M, 4]
+        return actions.numpy()
 
     return act
 

@@ -117,16 +117,10 @@ class RolloutWorker:
         )
 
     def _sample(self, obs: torch.Tensor) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # the critic runs only when behaviour values are stored (value clipping): about half the inference cost
         with autocast(self.precision, obs.device):  # the model returns fp32 means and values either way
-            if self.store_values:
-                mean, log_std, value = self.model(obs)
-            else:  # the critic is not needed to act: skip it (about half the inference cost)
-                (mean, log_std), value = self.model.policy(obs), torch.zeros(obs.shape[0])
-        std = log_std.exp()
-        noise = torch.randn(mean.shape, generator=self.generator)
-        actions = mean + std * noise
-        log_probs = torch.distributions.Normal(mean, std).log_prob(actions).sum(-1)
-        return actions.numpy(), log_probs.numpy(), value.numpy()
+            actions, log_probs, values = self.model.act(obs, generator=self.generator, with_value=self.store_values)
+        return actions.numpy(), log_probs.numpy(), values.numpy()
 
     def collect_with_weights(self, weights: Optional[Tuple[int, Dict[str, torch.Tensor]]]) -> Dict[str, Any]:
         """Pick up newer weights (if given) between fragments, then sample one fragment."""
