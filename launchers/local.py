@@ -47,6 +47,15 @@ def resume_problem(path: str) -> Optional[str]:
 def main(argv: Optional[List[str]] = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return _train(args)
+    except KeyboardInterrupt:  # Ctrl-C before the training loop (imports, Ray, workers): no traceback
+        print("interrupted during start-up; a run directory made so far holds no checkpoint and starts afresh "
+              "on --resume", file=sys.stderr)
+        return 130
+
+
+def _train(args: argparse.Namespace) -> int:
     from swarm_appo.config import ConfigError
     from swarm_appo.trainer import TrainingError, train
 

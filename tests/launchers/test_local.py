@@ -119,3 +119,15 @@ def test_progress_counts_toward_whichever_limit_comes_first():
     assert progress_units(both, 100, elapsed_s=50) == PROGRESS_UNITS // 2  # time binds
     assert progress_units(both, 900, elapsed_s=50) == PROGRESS_UNITS * 9 // 10  # steps bind
     assert progress_units(both, 5000, elapsed_s=500) == PROGRESS_UNITS
+
+
+def test_ctrl_c_during_start_up_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
+    import swarm_appo.trainer
+
+    def interrupted_start(*args, **kwargs):
+        raise KeyboardInterrupt  # e.g. Ctrl-C while Ray starts
+
+    monkeypatch.setattr(swarm_appo.trainer, "train", interrupted_start)
+    assert main(["--no-progress", f"runner.run_dir={tmp_path}"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted during start-up" in err and "Traceback" not in err
