@@ -18,6 +18,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from quad_env.actions import check_actions
 from quad_env.config import EnvConfig
 from quad_env.vec_env import VecQuadEnv
 
@@ -47,7 +48,9 @@ class QuadSwarmEnv(gymnasium.Env):
         return obs.copy(), {"scenario": self.vec.scenario.episode_name(0)}
 
     def step(self, actions):
-        obs, rew, terminated, truncated = self.vec.step(np.asarray(actions))
+        n = self.vec.num_agents
+        obs, rew, terminated, truncated = self.vec.step(check_actions(actions, (n, 4), f"actions (one row of 4 per "
+                                                                                      f"drone, {n} drones)"))
         info: Dict[str, Any] = {"reward_terms": {k: v.copy() for k, v in self.vec.reward_terms.items()}}
         if truncated.any():
             info["episode"] = self.vec.pop_episode_stats()[0]
@@ -78,7 +81,7 @@ class QuadDroneEnv(gymnasium.Env):
         return obs[0], info
 
     def step(self, action):
-        obs, rew, term, trunc, info = self.env.step(np.asarray(action, dtype=np.float32).reshape(1, 4))
+        obs, rew, term, trunc, info = self.env.step(check_actions(action, (4,), "action").reshape(1, 4))
         info = {"reward_terms": {k: float(v[0]) for k, v in info["reward_terms"].items()},
                 **({"episode_stats": info["episode"]} if "episode" in info else {})}
         return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), info
@@ -108,7 +111,8 @@ class QuadSwarmVectorEnv(gymnasium.vector.VectorEnv):
         return obs.copy(), {}
 
     def step(self, actions):
-        obs, rew, term, trunc = self.vec.step(np.asarray(actions, dtype=np.float32))
+        obs, rew, term, trunc = self.vec.step(check_actions(actions, (self.num_envs, 4),
+                                                            f"actions (one row of 4 per slot, {self.num_envs} slots)"))
         infos: Dict[str, Any] = {}
         done = term | trunc
         if done.any():
@@ -156,7 +160,11 @@ class QuadSwarmParallelEnv(ParallelEnv):
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ValueError(f"missing actions for agents {missing}")
-        batch = np.stack([np.asarray(actions[a], dtype=np.float32) for a in self.possible_agents])
+        unknown = [a for a in actions if a not in self.agents]
+        if unknown:
+            raise ValueError(f"actions for unknown agents {unknown}; the agents are {self.agents}")
+        batch = np.stack([check_actions(actions[a], (4,), f"action of {a!r}").astype(np.float64, copy=False)
+                          for a in self.possible_agents])
         obs, rew, term, trunc, info = self.env.step(batch)
         agents = self.agents
         out = ({a: obs[k] for k, a in enumerate(agents)},

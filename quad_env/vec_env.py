@@ -35,6 +35,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from quad_env.actions import check_actions
 from quad_env.config import EnvConfig
 from quad_env.kernels import (
     ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_OBST,
@@ -132,7 +133,7 @@ class VecQuadEnv:
         self._done = np.zeros(E, bool)
         self._diverged = np.zeros(E, bool)
         self._needs_reset = np.zeros(E, bool)
-        self._action_buf = np.zeros((M, 4), np.float32)
+        self._action_buf = np.zeros((M, 4), np.float64)  # exact for float32 and float64 inputs
         self.reward_terms: Dict[str, np.ndarray] = {name: self._terms[k] for k, name in enumerate(REWARD_TERMS)}
         self._episode_stats: List[dict] = []
         # ---- floor contacts: reward.crash and the respawn_on_floor training aid (off in the paper's setting)
@@ -326,16 +327,12 @@ class VecQuadEnv:
 
     # ------------------------------------------------------------------ internals
     def _check_actions(self, actions) -> np.ndarray:
-        a = actions if isinstance(actions, np.ndarray) else np.asarray(actions)
-        if a.shape != (self.num_drones, 4):
-            raise ValueError(f"actions must have shape (E*N, 4) = ({self.num_drones}, 4), got {a.shape}")
-        if a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous:
-            np.copyto(self._action_buf, a, casting="unsafe")
-            a = self._action_buf
-        if not all_finite(a):
-            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
-            raise ValueError(f"actions contain NaN or inf (rows {bad[:10].tolist()}{'...' if bad.size > 10 else ''})")
-        return a
+        a = actions
+        if (isinstance(a, np.ndarray) and a.dtype in (np.float32, np.float64) and a.flags.c_contiguous
+                and a.shape == (self.num_drones, 4) and all_finite(a)):
+            return a  # the step loop's path: no copy, no allocation
+        return check_actions(actions, (self.num_drones, 4), "actions (one row of 4 per drone, E*N rows)",
+                             out=self._action_buf)
 
     def _index_obstacles(self, selected: np.ndarray) -> None:
         """Rebuild the obstacle field's lookup index of the selected swarms (after their layout changed)."""
