@@ -52,11 +52,11 @@ def print_result(result) -> None:
 
 
 def report_training_error(exc: BaseException) -> int:
-    """Print why training stopped (the cause's traceback for a learner bug, one paragraph for a run that cannot
-    learn) and return the exit code 1."""
+    """Print why training stopped (the cause's traceback for a learner bug; one paragraph for a run that cannot
+    learn or a system error such as a full disk) and return the exit code 1."""
     import traceback
 
-    if exc.__cause__ is not None:
+    if exc.__cause__ is not None and not isinstance(exc.__cause__, OSError):  # a bug: show where (once)
         traceback.print_exception(exc.__cause__, file=sys.stderr)
     print(f"error: {exc}", file=sys.stderr)
     return 1

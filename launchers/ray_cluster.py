@@ -369,6 +369,9 @@ def cmd_run(args) -> int:
         result = train(cfg, progress=False, on_iteration=ProgressLines(run_dir, args.log_every_s))
     except TrainingError as exc:
         return report_training_error(exc)
+    except ConfigError as exc:  # what only the learner's node can tell: its device, its disk
+        print(f"config error: {exc}", file=sys.stderr)
+        return 2
     print_result(result)
     placement = read_placement(result.run_dir)
     if placement:

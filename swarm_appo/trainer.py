@@ -11,6 +11,7 @@ are checkpointed atomically, so a run killed at any moment resumes from its last
 """
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import random
@@ -71,6 +72,16 @@ class GracefulStop:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
+
+
+def stopped_by_error(exc: BaseException, run_dir: Path, last_ckpt: Optional[Path]) -> TrainingError:
+    """What to tell the user when ``exc`` ends training: what happened, what to do first, how to resume."""
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return TrainingError(f"the disk holding {run_dir} is full ({exc.strerror}). Free space there first, then "
+                             f"resume from the last checkpoint ({last_ckpt}) with --resume {run_dir}")
+    return TrainingError(f"training stopped by an error in the learner loop ({type(exc).__name__}: {exc}). "
+                         f"The run directory {run_dir} is intact; resume it from its last checkpoint "
+                         f"({last_ckpt}) with --resume {run_dir}")
 
 
 @dataclass
@@ -260,11 +271,15 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     precision, why = resolve_precision(cfg.runner.precision, device, cfg.model.size)
     if resume_dir is None:
         run_dir = fresh_run_dir(Path(cfg.runner.run_dir), cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
-    run_dir.mkdir(parents=True, exist_ok=True)
     inference, inference_why = resolve_precision(cfg.runner.inference_precision, torch.device("cpu"), cfg.model.size)
     precisions = (f"learner precision {precision} ({why}); rollout inference on this machine's CPU {inference} "
                   f"({inference_why})")
-    save_config(cfg, run_dir / "config.yaml", notes=[f"on this machine: {precisions}"])
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, run_dir / "config.yaml", notes=[f"on this machine: {precisions}"])
+    except OSError as exc:  # read-only, not a folder, disk full: one line naming the key, not a traceback
+        raise ConfigError(f"runner.run_dir: cannot write the run directory {run_dir}: "
+                          f"{exc.strerror or exc}") from exc
     log.info(precisions)
 
     seed_everything(cfg.runner.seed)
@@ -444,16 +459,19 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             bar.close()
         if isinstance(exc, TrainingError):
             raise
-        raise TrainingError(f"training stopped by an error in the learner loop ({type(exc).__name__}: {exc}). "
-                            f"The run directory {run_dir} is intact; resume it from its last checkpoint "
-                            f"({last_ckpt}) with --resume {run_dir}") from exc
+        raise stopped_by_error(exc, run_dir, last_ckpt) from exc
     finally:
         stop.__exit__()
     if stop.requested is not None:
         interrupted = True
         log.warning("%s: stopped at an iteration boundary, writing a final checkpoint to %s", stop.requested, run_dir)
     if not (interrupted and mid_iteration):
-        last_ckpt = checkpoint(last_reward)
+        try:
+            last_ckpt = checkpoint(last_reward)
+        except OSError as exc:  # e.g. the disk filled up: the earlier checkpoints are intact
+            sampler.close()
+            logger.close()
+            raise stopped_by_error(exc, run_dir, last_ckpt) from exc
     if placement is not None:
         try:
             placement.set_workers(sampler.worker_locations())  # replacements may sit elsewhere

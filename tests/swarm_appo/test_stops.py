@@ -105,3 +105,45 @@ def test_max_consecutive_skips_is_checked(tmp_path):
 
     with pytest.raises(ConfigError, match=r"algo\.max_consecutive_skips"):
         tiny_config(tmp_path, "x", **{"algo.max_consecutive_skips": -1})
+
+
+def test_a_run_dir_that_cannot_be_written_is_one_line_and_exit_2(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    argv = ["--no-progress", *tiny_overrides(blocker / "runs", "x")]
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        assert local.main(argv) == 2
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    err = capsys.readouterr().err
+    assert "runner.run_dir: cannot write the run directory" in err and "Traceback" not in err
+
+
+def test_a_full_disk_says_free_space_first_once_without_a_traceback(tmp_path, monkeypatch, capsys):
+    import errno
+
+    import swarm_appo.trainer as trainer_module
+
+    real_save = trainer_module.save_checkpoint
+    calls = []
+
+    def filling_disk(*args, **kwargs):
+        calls.append(1)
+        if len(calls) >= 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_save(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "save_checkpoint", filling_disk)
+    argv = ["--no-progress", *tiny_overrides(tmp_path, "full", **{"runner.checkpoint_every_updates": 1,
+                                                                    "runner.final_eval_episodes": 0})]
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        assert local.main(argv) == 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    err = capsys.readouterr().err
+    assert err.count("is full") == 1 and "Free space there first" in err and "Traceback" not in err
+    assert f"--resume {tmp_path / 'full'}" in err
+    kept = sorted((tmp_path / "full" / "checkpoints").glob("ckpt_*.pt"))
+    assert len(kept) == 2 and all(load_checkpoint(p)["agent_steps"] > 0 for p in kept)  # the earlier ones intact
