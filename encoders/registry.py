@@ -1,6 +1,6 @@
 """Encoders by name, each with a symmetry and a size preset.
 
-An encoder is an *architecture* (``ARCHITECTURES``: graphormer, kattention, deepsets, mlp) times a *symmetry*
+An encoder is an *architecture* (``ARCHITECTURES``: graphormer, kattention, deepsets, mlp, infomarl) times a *symmetry*
 (``encoders.frames.SYMMETRIES``: none, se3, yaw), orthogonal to each other as the paper's Lemma 1 allows:
 any architecture is made equivariant by canonicalization (``encoders.symmetric``; the Graphormer does it
 node by node itself). The paper's names stay selectable: ``se3_graphormer`` and ``se3_kattention`` are
@@ -21,6 +21,7 @@ from quad_env.obs_layout import ObsLayout
 from .deepsets import DeepSetsEncoder
 from .frames import SYMMETRIES
 from .graphormer import GraphormerEncoder
+from .infomarl import InfoMARLEncoder
 from .kattention import KAttentionEncoder
 from .mlp import MLPEncoder
 from .symmetric import Canonicalized
@@ -30,6 +31,7 @@ ARCHITECTURES = {
     "kattention": KAttentionEncoder,
     "deepsets": DeepSetsEncoder,
     "mlp": MLPEncoder,
+    "infomarl": InfoMARLEncoder,
 }
 # the paper's names: (architecture, symmetry)
 ALIASES: Dict[str, Tuple[str, str]] = {
@@ -47,6 +49,7 @@ SIZE_PRESETS: Dict[str, Dict[str, dict]] = {
         "kattention": dict(hidden=64, out_dim=64),
         "deepsets": dict(hidden=64, out_dim=64),
         "mlp": dict(hidden=64, out_dim=64),
+        "infomarl": dict(hidden=32, num_heads=2, out_dim=64),
     },
 }
 WRAPPER_OPTIONS = ("out_vectors",)  # options of the canonicalization, not of the architecture

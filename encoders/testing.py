@@ -164,4 +164,5 @@ TINY_OPTIONS = {
     "kattention": dict(hidden=16, out_dim=32),
     "deepsets": dict(hidden=16, out_dim=32),
     "mlp": dict(hidden=16, out_dim=32),
+    "infomarl": dict(hidden=8, embedding_size=2, num_heads=2, out_dim=32),
 }
