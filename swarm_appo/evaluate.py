@@ -261,11 +261,13 @@ def task_seed(seed: int, chunk: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(chunk)]).generate_state(1)[0])
 
 
-def resolve_scenarios(text: str, num_agents: Sequence[int]) -> List[str]:
-    """``"all"`` (every registered scenario but ``mix``, those that fit every N) or a comma-separated list."""
+def resolve_scenarios(text: str, num_agents: Sequence[int], obstacles: bool = True) -> List[str]:
+    """``"all"`` (every registered scenario but ``mix`` that fits every N and, for policies trained without
+    ``env.obstacles``, does not need obstacles) or a comma-separated list (each one checked)."""
     if text.strip() == "all":
         names = [s for s in SCENARIOS if s not in EXCLUDED_FROM_ALL]
-        return [s for s in names if SCENARIO_REGISTRY[s].min_agents <= min(num_agents)]
+        return [s for s in names if SCENARIO_REGISTRY[s].min_agents <= min(num_agents)
+                and (obstacles or not SCENARIO_REGISTRY[s].needs_obstacles)]
     names = [s.strip() for s in text.split(",") if s.strip()]
     unknown = [s for s in names if s not in SCENARIO_REGISTRY]
     if unknown or not names:
@@ -497,7 +499,9 @@ def main(argv=None) -> int:
                 raise ValueError(f"the checkpoints were trained with different swarm sizes {trained_n}: "
                                  "choose one with --num-agents")
             num_agents = parse_num_agents(args.num_agents) if args.num_agents else trained_n
-            scenarios = resolve_scenarios(args.scenarios, num_agents)
+            # a policy without the obstacle field cannot fly the obstacle scenarios: "all" leaves them out
+            obstacles = all(s.env.obstacles for s in specs if s.layout is not None)
+            scenarios = resolve_scenarios(args.scenarios, num_agents, obstacles)
             for s in specs[1:]:
                 keys = _differing_env_keys(specs[0].env, s.env)
                 if keys:

@@ -69,3 +69,14 @@ def test_end_of_run_and_command_line_evaluations_agree_and_fly_without_respawns(
     # ... although the same random episodes in the training environment do
     trained_env = evaluate.run_episodes(cfg.env, evaluate.random_policy(seed), 3, seed)
     assert sum(e["respawns"] for e in trained_env) > 0
+
+
+def test_all_scenarios_leave_out_obstacle_scenarios_for_a_policy_without_obstacles():
+    from quad_env.scenarios import SCENARIO_REGISTRY
+    from swarm_appo.evaluate import resolve_scenarios
+
+    with_obstacles = resolve_scenarios("all", [8], obstacles=True)
+    without = resolve_scenarios("all", [8], obstacles=False)
+    obstacle_scenarios = {s for s in with_obstacles if SCENARIO_REGISTRY[s].needs_obstacles}
+    assert obstacle_scenarios == {"o_random", "o_static_same_goal"}
+    assert set(without) == set(with_obstacles) - obstacle_scenarios and "mix" not in with_obstacles
