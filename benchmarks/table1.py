@@ -38,8 +38,11 @@ DEFAULT_ROWS = ("deepsets/none", "deepsets/se3", "kattention/none", "kattention/
                 "graphormer/se3")
 DEFAULT_RECIPE = ROOT / "configs" / "table1" / "recipe.yaml"
 # training-curve metrics of metrics.jsonl (training episodes, with the training aids) -> plot title
-CURVES = (("swarm/success_rate", "success rate (Suc)"), ("swarm/collisions", "drone collisions / episode"),
-          ("swarm/dist", "distance to goal, last 5 s (m)"))
+# (metric keys, first present wins: runs logged before swarm/collisions_drone existed have drone contacts in
+# swarm/collisions) -> plot title
+CURVES = ((("swarm/success_rate",), "success rate (Suc)"),
+          (("swarm/collisions_drone", "swarm/collisions"), "drone collisions / episode (ColD)"),
+          (("swarm/dist",), "distance to goal, last 5 s (m)"))
 EVAL_DIR = "eval_table1"
 
 
@@ -241,11 +244,12 @@ def plot_curves(curves: Dict[str, List[List[dict]]], path: Path, title: str) -> 
 
     fig, axes = plt.subplots(1, len(CURVES), figsize=(5 * len(CURVES), 3.6))
     drawn = False
-    for ax, (key, name) in zip(axes, CURVES):
+    for ax, (keys, name) in zip(axes, CURVES):
         for label, runs in curves.items():
             series = []
             for records in runs:
-                pts = [(r["global_step"], r[key]) for r in records if key in r and np.isfinite(r[key])]
+                key = next((k for k in keys if any(k in r for r in records)), keys[0])
+                pts = [(r["global_step"], r[key]) for r in records if r.get(key) is not None and np.isfinite(r[key])]
                 if len(pts) >= 2:
                     pts = np.array(pts, dtype=float)
                     pts[:, 1] = smooth(pts[:, 1], SMOOTH_RECORDS)

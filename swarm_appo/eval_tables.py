@@ -41,12 +41,17 @@ SHAPING_REWARD_TERMS = tuple(t for t in REWARD_TERMS if t not in PAPER_REWARD_TE
 
 @dataclass(frozen=True)
 class Metric:
+    """One swarm metric, the single definition that training (``swarm/<name>``), the end-of-run evaluation
+    (``eval/<name>``, ``eval_random/<name>``), the tables and the metric docs all read."""
+
     column: str  # header in the Markdown table
     csv_name: str  # prefix of the CSV columns <csv_name>_mean, <csv_name>_std
     stats: Tuple[str, ...]  # keys in the episode stats dict, summed ...
     scale: float  # ... and the table shows (sum - sum of ``minus``) * scale
     decimals: int
     higher_is_better: bool
+    name: str  # logged as swarm/<name> (training episodes), eval/<name>, eval_random/<name> (unscaled)
+    description: str  # what it measures, in the metric docs (swarm_appo.metrics.METRICS)
     minus: Tuple[str, ...] = ()  # keys subtracted
     markdown: str = "always"  # in the Markdown table: "always", "nonzero" (when some row is not 0) or "never"
     optional: bool = False  # computed only when every episode has the stats (else the column is left out)
@@ -60,18 +65,34 @@ class Metric:
 
 
 METRICS: Dict[str, Metric] = {
-    "rew": Metric("Rew", "reward", tuple(f"rew_{t}" for t in PAPER_REWARD_TERMS), 1.0, 2, True),
+    "rew": Metric("Rew", "reward", tuple(f"rew_{t}" for t in PAPER_REWARD_TERMS), 1.0, 2, True, "reward",
+                  "Rew: mean per-agent episode reward of the paper's terms c1..c5 (pos, collision, proximity, omega, "
+                  "action)"),
     "shaping": Metric("Shaping", "reward_shaping", tuple(f"rew_{t}" for t in SHAPING_REWARD_TERMS), 1.0, 2, True,
-                      markdown="nonzero"),
-    "dist": Metric("Dist", "dist", ("dist_last_5s",), 1.0, 2, False),
-    "dist_final": Metric("Dist end", "dist_final", ("dist_final",), 1.0, 2, False, markdown="never"),
-    "col": Metric("Col", "collisions", ("collisions_after_grace", "room_contacts_after_grace"), 1.0, 2, False),
-    "cold": Metric("ColD", "collisions_drone", ("collisions_after_grace",), 1.0, 2, False,
+                      "reward_shaping", "per-agent episode sum of the training-only shaping terms (floor, tilt, "
+                      "crash), not in Rew", markdown="nonzero"),
+    "dist": Metric("Dist", "dist", ("dist_last_5s",), 1.0, 2, False, "dist",
+                   "Dist: mean distance of a drone to its goal over the last 5 s of the episode (m)"),
+    "dist_final": Metric("Dist end", "dist_final", ("dist_final",), 1.0, 2, False, "dist_final",
+                         "mean distance of a drone to its goal at the end of the episode (m)", markdown="never"),
+    "col": Metric("Col", "collisions", ("collisions_after_grace", "room_contacts_after_grace"), 1.0, 2, False,
+                  "collisions", "Col: new contacts per episode after the 1.5 s grace period with other drones "
+                  "(pairs), obstacles and the room (floor, walls, ceiling)"),
+    "cold": Metric("ColD", "collisions_drone", ("collisions_after_grace",), 1.0, 2, False, "collisions_drone",
+                   "ColD: new drone-drone contacts (pairs) per episode after the grace period",
                    minus=("obstacle_collisions_after_grace",)),
-    "suc": Metric("Suc %", "success_pct", ("success_rate",), 100.0, 1, True),
-    "reached": Metric("Reached %", "reached_pct", ("reached_rate",), 100.0, 1, True, markdown="never",
-                      optional=True),
-    "icolr": Metric("IColR", "inter_collision_rate", ("inter_collision_rate",), 1.0, 3, False),
+    "room": Metric("Room", "room_contacts", ("room_contacts_after_grace",), 1.0, 2, False, "room_contacts",
+                   "new floor/wall/ceiling contacts per episode after the grace period (part of Col)",
+                   markdown="never"),
+    "suc": Metric("Suc %", "success_pct", ("success_rate",), 100.0, 1, True, "success_rate",
+                  "Suc: share of drones within 0.5 m of their goal during the whole last 1 s of the episode and "
+                  "without a collision after the grace period (0-1)"),
+    "reached": Metric("Reached %", "reached_pct", ("reached_rate",), 100.0, 1, True, "reached_rate",
+                      "share of drones that came within 0.5 m of their goal at some time (when the episode stats "
+                      "carry reached_rate)", markdown="never", optional=True),
+    "icolr": Metric("IColR", "inter_collision_rate", ("inter_collision_rate",), 1.0, 3, False,
+                    "inter_collision_rate", "IColR: share of drones with a drone-drone collision after the grace "
+                    "period"),
 }
 TABLE1_METRICS = ("rew", "shaping", "dist", "col", "cold", "suc", "reached", "icolr")
 TABLE2_METRICS = ("rew", "shaping", "col", "cold", "suc", "reached", "icolr")

@@ -112,10 +112,8 @@ def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: in
 
 
 # <prefix>/<name> of the end-of-run evaluation <- the table metric (swarm_appo.eval_tables.METRICS) it is
-# the episode mean of, unscaled (success and reached rates as shares); described in swarm_appo.metrics.METRICS
-SUMMARY_METRICS = {"reward": "rew", "reward_shaping": "shaping", "dist": "dist", "dist_final": "dist_final",
-                   "collisions": "col", "collisions_drone": "cold", "success_rate": "suc", "reached_rate": "reached",
-                   "inter_collision_rate": "icolr"}
+# the episode mean of, unscaled (success and reached rates as shares)
+SUMMARY_METRICS = {m.name: key for key, m in METRICS.items()}
 
 
 def summarize(episodes: List[Dict], prefix: str) -> Dict[str, float]:

@@ -176,7 +176,7 @@ class Learner:
         self.optimizer.step()
         self.num_updates += 1
         self.consecutive_skips = 0
-        stats = {k: float(v) for k, v in stats.items()}
+        # valid_fraction is lag/masked_fraction's complement (logged by LagStats): not logged twice
+        stats = {k: float(v) for k, v in stats.items() if k != "valid_fraction"}
         stats["grad_norm"] = float(grad_norm)
-        stats["loss"] = float(loss.detach())
         return stats

@@ -26,6 +26,7 @@ import numpy as np
 
 from quad_env.params import REWARD_TERMS
 from swarm_appo.checkpoint import atomic_write_bytes
+from swarm_appo.eval_tables import METRICS as TABLE_METRICS
 
 METRICS_FILE = "metrics.jsonl"
 WANDB_ID_FILE = "wandb_id.txt"
@@ -40,24 +41,11 @@ METRICS: Dict[str, str] = {
        for term in REWARD_TERMS},
     # eval/, eval_random/: end-of-run evaluation (mean actions vs uniformly random actions, same episodes), in
     # the training environment without its training aids (swarm_appo.evaluate.evaluation_env); each is the
-    # episode mean of a column of the evaluation tables (swarm_appo.evaluate.SUMMARY_METRICS)
-    "eval/reward": "Rew: mean per-agent episode reward of the paper's terms c1..c5 (pos, collision, proximity, "
-                   "omega, action), trained policy (mean actions)",
-    "eval/reward_shaping": "per-agent episode sum of the shaping terms (floor, tilt, crash), not in eval/reward",
-    "eval/dist": "mean distance to goal over the last 5 s of the episode, trained policy (m)",
-    "eval/dist_final": "mean distance to goal at the end of the episode, trained policy (m)",
-    "eval/collisions": "Col: new contacts per episode after the 1.5 s grace period with other drones (pairs), "
-                       "obstacles and the room (floor, walls, ceiling), trained policy",
-    "eval/collisions_drone": "ColD: new drone-drone contacts (pairs) per episode after the grace period",
-    "eval/success_rate": "Suc: share of drones within 0.5 m of their goal during the whole last 1 s of the episode "
-                         "and without a collision after the grace period",
-    "eval/reached_rate": "share of drones that came within 0.5 m of their goal at some time (when the episode "
-                         "stats carry reached_rate)",
-    "eval/inter_collision_rate": "IColR: share of drones with a drone-drone collision after the grace period",
-    "eval/dist_ratio_to_random": "eval/dist divided by eval_random/dist (learning shows as < 1; quickstart target <= 0.5)",
-    **{f"eval_random/{name}": "the same for uniformly random actions"
-       for name in ("reward", "reward_shaping", "dist", "dist_final", "collisions", "collisions_drone",
-                    "success_rate", "reached_rate", "inter_collision_rate")},
+    # episode mean of a column of the evaluation tables, unscaled (swarm_appo.eval_tables.METRICS)
+    **{f"eval/{m.name}": f"{m.description}, trained policy (mean actions)" for m in TABLE_METRICS.values()},
+    **{f"eval_random/{m.name}": f"{m.description}, uniformly random actions" for m in TABLE_METRICS.values()},
+    "eval/dist_ratio_to_random": "eval/dist divided by eval_random/dist (learning shows as < 1; quickstart target "
+                                 "<= 0.5)",
     # charts/: training progress
     "charts/episode_reward": "mean return per drone of the episodes that ended since the last record",
     "charts/episode_length": "mean length (control steps) of those episodes",
@@ -65,15 +53,9 @@ METRICS: Dict[str, str] = {
     "charts/sps": "agent steps per second since the last record",
     "charts/elapsed_s": "wall time since the start of this process",
     "charts/learning_rate": "Adam learning rate of the last batch (algo.lr_schedule)",
-    # swarm/: the paper's evaluation metrics, also per scenario as swarm/<scenario>/<name> (swarm_metric)
-    "swarm/dist": "Dist: mean distance of a drone to its goal over the last 5 s of the episode (m)",
-    "swarm/dist_final": "mean distance of a drone to its goal at the end of the episode (m)",
-    "swarm/collisions": "new drone-drone (pairs) and drone-obstacle contacts per episode after the 1.5 s grace period "
-                        "(the evaluation's Col adds swarm/room_contacts)",
-    "swarm/success_rate": "Suc: share of drones within 0.5 m of their goal during the whole last 1 s of the episode "
-                          "and without a collision after the grace period (0-1)",
-    "swarm/inter_collision_rate": "IColR: share of drones with a drone-drone contact after the grace period",
-    "swarm/room_contacts": "new floor/wall/ceiling contacts per episode after the grace period",
+    # swarm/: the evaluation tables' metrics on the training episodes (training aids on), also per scenario as
+    # swarm/<scenario>/<name> (swarm_metric)
+    **{f"swarm/{m.name}": m.description for m in TABLE_METRICS.values()},
     # losses/: the learner (means over the minibatches of one learner iteration)
     "losses/policy_loss": "clipped-surrogate loss",
     "losses/value_loss": "value loss (squared error to the V-trace targets)",
@@ -82,7 +64,6 @@ METRICS: Dict[str, str] = {
     "losses/clip_fraction": "share of samples whose probability ratio left the clip range",
     "losses/explained_variance": "explained variance of the V-trace targets by the critic",
     "losses/total_loss": "the optimised loss",
-    "losses/valid_fraction": "share of samples not masked out (policy lag within algo.max_policy_lag)",
     "losses/grad_norm": "global gradient norm before clipping",
     "losses/skipped_updates": "updates skipped because of a non-finite loss or gradient (cumulative)",
     # lag/: policy lag = learner version - behaviour version, per trained step (LagStats)

@@ -30,6 +30,7 @@ from quad_env import REWARD_TERMS, VecQuadEnv
 from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
                                    save_checkpoint)
 from swarm_appo.config import ConfigError, TrainConfig, config_from_dict, config_to_dict, save_config, validate
+from swarm_appo.eval_tables import METRICS as TABLE_METRICS
 from swarm_appo.evaluate import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
@@ -196,11 +197,6 @@ def max_fragments_in_flight(cfg: TrainConfig, num_workers: int) -> int:
 
 
 # swarm/<name> <- episode-stats key (the paper's Table 1 columns; definitions in the README)
-SWARM_METRICS = (("dist", "dist_last_5s"), ("dist_final", "dist_final"), ("collisions", "collisions_after_grace"),
-                 ("success_rate", "success_rate"), ("inter_collision_rate", "inter_collision_rate"),
-                 ("room_contacts", "room_contacts_after_grace"))
-
-
 def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
     """charts/ and swarm/ records from the swarm episodes that ended since the last log."""
     if not episodes:
@@ -215,14 +211,14 @@ def summarize_episodes(episodes: List[Dict[str, Any]]) -> Dict[str, float]:
         vals = [e[f"rew_{term}"] for e in episodes if f"rew_{term}" in e]
         if vals:
             out[f"reward/{term}"] = float(np.mean(vals))
-    for key, src in SWARM_METRICS:
-        vals = [e[src] for e in episodes if src in e]
-        if vals:
-            out[f"swarm/{key}"] = float(np.mean(vals))
-        for scen, eps in by_scenario.items():
-            vals = [e[src] for e in eps if src in e]
+    # swarm/<name>: the evaluation tables' metrics (eval_tables.METRICS) on the training episodes, with the
+    # training aids on; also per scenario as swarm/<scenario>/<name>
+    groups = [("", episodes), *((f"{scen}/", eps) for scen, eps in by_scenario.items())]
+    for metric in TABLE_METRICS.values():
+        for scope, eps in groups:
+            vals = [metric.value(e) for e in eps if metric.available(e)]
             if vals:
-                out[f"swarm/{scen}/{key}"] = float(np.mean(vals))
+                out[f"swarm/{scope}{metric.name}"] = float(np.mean(vals))
     return out
 
 

@@ -50,7 +50,7 @@ def test_sigterm_at_a_random_moment_stops_at_an_iteration_boundary(tmp_path, sig
     # every counter describes the same whole number of iterations: no partial update, no untrained fragment
     assert state["learner"]["num_updates"] == UPDATES_PER_ITERATION * version
     assert state["agent_steps"] == STEPS_PER_ITERATION * version == result.agent_steps
-    logged = [r["global_step"] for r in read_metrics(result.run_dir) if "losses/loss" in r]
+    logged = [r["global_step"] for r in read_metrics(result.run_dir) if "losses/total_loss" in r]
     assert logged[-1] == state["agent_steps"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored after the run
 
