@@ -1,4 +1,6 @@
 """The demo writes a trajectory PNG; the hand-written controller flies the drones to their goals."""
+import os
+
 import numpy as np
 
 from quad_env import EnvConfig, VecQuadEnv
@@ -11,7 +13,12 @@ def test_demo_writes_a_png(tmp_path, capsys):
     assert path.endswith(".png") and path in capsys.readouterr().out
     with open(path, "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
-    main(["--out", str(tmp_path / "demo"), "--steps", "5", "--policy", "random", "--scenario", "static_same_goal"])
+    second = main(["--out", str(tmp_path / "random"), "--steps", "5", "--policy", "random", "--scenario",
+                   "static_same_goal"])
+    assert second != path and second.endswith(".png")  # a second picture, the first one kept
+    with open(second, "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    assert os.path.exists(path)
 
 
 def test_controller_reaches_the_goals_with_all_noise_on():

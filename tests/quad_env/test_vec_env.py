@@ -39,10 +39,15 @@ def test_step_before_reset_works():
 
 
 def test_float64_int_and_non_contiguous_actions_accepted():
-    env = VecQuadEnv(EnvConfig(num_agents=2, thrust_noise=False, sensor_noise=False), num_envs=2, seed=0)
+    """Each form steps exactly like its C-contiguous float64 copy."""
     a = np.random.default_rng(0).uniform(-1, 1, (4, 8))[:, ::2]  # non-contiguous float64
-    env.step(a)
-    env.step(np.zeros((4, 4), np.int64))
+    obs = {}
+    for name, first, second in (("views", a, np.zeros((4, 4), np.int64)),
+                                ("copies", np.ascontiguousarray(a), np.zeros((4, 4), np.float64))):
+        env = VecQuadEnv(EnvConfig(num_agents=2, thrust_noise=False, sensor_noise=False), num_envs=2, seed=0)
+        env.step(first)
+        obs[name] = env.step(second)[0].copy()
+    np.testing.assert_array_equal(obs["views"], obs["copies"])
 
 
 @pytest.mark.parametrize("bad,msg", [
