@@ -483,13 +483,15 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                     cfg.runner.time_limit_s, f"{agent_steps:,}", f"{cfg.runner.total_agent_steps:,}",
                     100.0 * agent_steps / cfg.runner.total_agent_steps)
     final_eval: Dict[str, float] = {}
-    if cfg.runner.final_eval_episodes > 0 and not interrupted:
-        log.info("end-of-run evaluation: %d seeded episodes of %g s, trained policy and random actions, training "
-                 "aids off", cfg.runner.final_eval_episodes, cfg.env.episode_duration)
-        # in swarm_appo.evaluate.evaluation_env(cfg.env): the training aids off, as the command line evaluates
-        final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
-                                         seed=default_eval_seed(cfg.runner.seed))
-        logger.log(agent_steps, final_eval)
-    logger.close()
+    try:
+        if cfg.runner.final_eval_episodes > 0 and not interrupted:
+            log.info("end-of-run evaluation: %d seeded episodes of %g s, trained policy and random actions, "
+                     "training aids off", cfg.runner.final_eval_episodes, cfg.env.episode_duration)
+            # in swarm_appo.evaluate.evaluation_env(cfg.env): the training aids off, as the command line evaluates
+            final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
+                                             seed=default_eval_seed(cfg.runner.seed))
+            logger.log(agent_steps, final_eval)
+    finally:  # metrics.jsonl and the wandb run are closed even if the evaluation fails (the checkpoint is written)
+        logger.close()
     return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted, final_eval,
                      stopped_by, cfg.runner.total_agent_steps)

@@ -147,3 +147,21 @@ def test_a_full_disk_says_free_space_first_once_without_a_traceback(tmp_path, mo
     assert f"--resume {tmp_path / 'full'}" in err
     kept = sorted((tmp_path / "full" / "checkpoints").glob("ckpt_*.pt"))
     assert len(kept) == 2 and all(load_checkpoint(p)["agent_steps"] > 0 for p in kept)  # the earlier ones intact
+
+
+def test_a_failing_end_of_run_evaluation_still_closes_the_metrics(tmp_path, monkeypatch):
+    import swarm_appo.trainer as trainer_module
+    from swarm_appo.metrics import MetricsLogger
+
+    closed = []
+    real_close = MetricsLogger.close
+    monkeypatch.setattr(MetricsLogger, "close", lambda self: (closed.append(1), real_close(self))[1])
+
+    def broken_evaluation(*args, **kwargs):
+        raise RuntimeError("evaluation broke")
+
+    monkeypatch.setattr(trainer_module, "compare_with_random", broken_evaluation)
+    with pytest.raises(RuntimeError, match="evaluation broke"):
+        train(tiny_config(tmp_path, "ev"), progress=False)
+    assert closed
+    assert any((tmp_path / "ev" / "checkpoints").glob("ckpt_*.pt"))  # the final checkpoint came first
