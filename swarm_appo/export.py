@@ -276,7 +276,7 @@ def export_actor(model: nn.Module, out_dir, env_cfg, formats: Sequence[str] = FO
 def export_checkpoint(checkpoint: str, out_dir, formats: Sequence[str] = FORMATS,
                       clip_actions: bool = False) -> Dict[str, Path]:
     """``export_actor`` of a checkpoint file or run directory (its latest valid checkpoint)."""
-    from swarm_appo.evaluate import load_checkpoint_policy
+    from swarm_appo.evaluation import load_checkpoint_policy
 
     loaded = load_checkpoint_policy(checkpoint)
     env = loaded.cfg.env

@@ -40,7 +40,7 @@ METRICS: Dict[str, str] = {
     **{f"reward/{term}": f"per-agent episode sum of the reward term {term!r} (env.reward.{term} sets its weight)"
        for term in REWARD_TERMS},
     # eval/, eval_random/: end-of-run evaluation (mean actions vs uniformly random actions, same episodes), in
-    # the training environment without its training aids (swarm_appo.evaluate.evaluation_env); each is the
+    # the training environment without its training aids (swarm_appo.evaluation.evaluation_env); each is the
     # episode mean of a column of the evaluation tables, unscaled (swarm_appo.eval_tables.METRICS)
     **{f"eval/{m.name}": f"{m.description}, trained policy (mean actions)" for m in TABLE_METRICS.values()},
     **{f"eval_random/{m.name}": f"{m.description}, uniformly random actions" for m in TABLE_METRICS.values()},

@@ -31,7 +31,7 @@ from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, r
                                    save_checkpoint)
 from swarm_appo.config import ConfigError, TrainConfig, config_from_dict, config_to_dict, save_config, validate
 from swarm_appo.eval_tables import METRICS as TABLE_METRICS
-from swarm_appo.evaluate import compare_with_random, default_eval_seed
+from swarm_appo.evaluation import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, system_metrics
 from swarm_appo.model import model_factory
@@ -487,7 +487,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
         if cfg.runner.final_eval_episodes > 0 and not interrupted:
             log.info("end-of-run evaluation: %d seeded episodes of %g s, trained policy and random actions, "
                      "training aids off", cfg.runner.final_eval_episodes, cfg.env.episode_duration)
-            # in swarm_appo.evaluate.evaluation_env(cfg.env): the training aids off, as the command line evaluates
+            # in swarm_appo.evaluation.evaluation_env(cfg.env): the training aids off, as the command line evaluates
             final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
                                              seed=default_eval_seed(cfg.runner.seed))
             logger.log(agent_steps, final_eval)

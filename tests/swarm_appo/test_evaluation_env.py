@@ -80,3 +80,18 @@ def test_all_scenarios_leave_out_obstacle_scenarios_for_a_policy_without_obstacl
     obstacle_scenarios = {s for s in with_obstacles if SCENARIO_REGISTRY[s].needs_obstacles}
     assert obstacle_scenarios == {"o_random", "o_static_same_goal"}
     assert set(without) == set(with_obstacles) - obstacle_scenarios and "mix" not in with_obstacles
+
+
+def test_the_command_line_parses_before_loading_torch_and_forwards_the_library():
+    import subprocess
+    import sys
+
+    code = ("import sys, swarm_appo.evaluate as e; e.build_parser().parse_args(['--checkpoint', 'x']); "
+            "print('torch' in sys.modules, 'numba' in sys.modules, 'ray' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "False", "False"]
+    from swarm_appo import evaluation
+
+    assert evaluate.compare_with_random is evaluation.compare_with_random  # old imports keep working
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        evaluate.nope
