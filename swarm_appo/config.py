@@ -42,8 +42,9 @@ class ModelConfig:
     """The actor-critic (``encoders.ActorCritic``)."""
 
     encoder: str = "deepsets"
-    """Neighbour encoder, a name in ``encoders.ENCODERS``: the architectures graphormer, kattention, deepsets, mlp, infomarl,
-    and the paper's names se3_graphormer, se3_kattention (= graphormer / kattention with ``symmetry: se3``)."""
+    """Neighbour encoder, a name in ``encoders.ENCODERS``: the architectures graphormer, kattention, deepsets, mlp,
+    infomarl, and the paper's names se3_graphormer, se3_kattention (= graphormer / kattention with
+    ``symmetry: se3``)."""
     symmetry: Optional[str] = None
     """Symmetry group the encoder is made equivariant to by canonicalization (paper, Lemma 1), for every
     architecture: "none" (world-frame inputs, the paper's baselines), "se3" (each input in drone i's frame
