@@ -2,7 +2,7 @@
 
     python -m launchers.local                                   # embedded quickstart config
     python -m launchers.local --config configs/paper.yaml model.encoder=se3_graphormer env.num_agents=16
-    python -m launchers.local --resume runs/quickstart          # continue a run (same counters, same wandb run)
+    python -m launchers.local --resume runs/quickstart          # continue a run (same counters, one history)
 
 Ctrl-C stops cleanly and writes a final checkpoint.
 """

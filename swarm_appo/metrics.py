@@ -6,8 +6,12 @@ named ``<group>/<name>``; the groups are fixed (``METRIC_GROUPS``) and the stand
 default (``wandb sync run_dir/wandb/offline-run-*`` uploads later). Non-finite numbers are written to
 the JSON file as ``null`` (strict JSON).
 
-On resume the wandb run id is read back from ``run_dir/wandb_id.txt`` (or given), so the resumed run
-continues the same wandb run; records past the resumed step are dropped from ``metrics.jsonl``.
+One history: ``metrics.jsonl`` is the source of truth. On resume from a checkpoint, records past its step
+are dropped from it, and a *new* wandb run (same name and group, tag ``resumed``) starts by replaying every
+record kept there, then continues: the newest wandb run of a run directory holds each global_step exactly
+once, none missing (also the records that the killed run logged too late to reach its own .wandb file).
+The earlier wandb runs stay as they were (histories up to each crash); ``run_dir/wandb_id.txt`` names the
+newest. ``read_wandb_history`` reads an offline run's history back from its .wandb file.
 """
 from __future__ import annotations
 
@@ -200,7 +204,8 @@ class MetricsLogger:
         resume_id: wandb run id to continue; default: the id in ``run_dir/wandb_id.txt`` if present, else new.
         entity, group, tags: wandb entity, group and tags.
         resume_step: when resuming from a checkpoint at this global step, records logged after it (by the
-            run that died) are dropped from ``metrics.jsonl`` so the file has one record per step.
+            run that died) are dropped from ``metrics.jsonl`` so the file has one record per step, and the wandb
+            run is a new one that replays the kept records first (``resume_id`` is then ignored).
     """
 
     def __init__(self, run_dir: str | os.PathLike, cfg_dict: Mapping[str, Any], wandb_mode: str = "offline",
@@ -218,8 +223,14 @@ class MetricsLogger:
         self._wandb_run = None
         self.run_id: Optional[str] = None
         if wandb_mode != "disabled":
+            replay = resume_step is not None
+            if replay:  # a new wandb run with the whole history, not a continuation holding some steps twice
+                resume_id, tags = uuid.uuid4().hex[:12], (*tags, "resumed")
             self._start_wandb(cfg_dict, wandb_mode, project, run_name or self.run_dir.name, resume_id, entity,
                               group, tags)
+            if replay and self._wandb_run is not None:
+                for record in read_metrics(self.run_dir):
+                    self._wandb_run.log({k: v for k, v in record.items() if k != "time" and v is not None})
 
     # ------------------------------------------------------------------ wandb
     def _start_wandb(self, cfg_dict, mode, project, run_name, resume_id, entity, group, tags) -> None:
@@ -302,3 +313,36 @@ def read_metrics(run_dir: str | os.PathLike) -> list:
         return []
     with open(path, encoding="utf-8") as f:
         return [json.loads(line) for line in f if line.strip()]
+
+
+def read_wandb_history(wandb_file: str | os.PathLike) -> list:
+    """The history records (dicts, in logged order) of an offline run's ``run-<id>.wandb`` file, read with
+    wandb's own record schema (``wandb.proto.wandb_internal_pb2.Record``) from its block format: a 7-byte
+    header, then 32 KiB blocks of chunks (crc32 (4), length (2), type (1: full, 2: first, 3: middle, 4: last))."""
+    import struct
+
+    from wandb.proto import wandb_internal_pb2 as pb
+
+    data = Path(wandb_file).read_bytes()
+    if data[:4] != b":W&B":
+        raise ValueError(f"{wandb_file} is not a wandb run file")
+    block, pos, pending, history = 32768, 7, b"", []
+    while pos + 7 <= len(data):
+        left = block - pos % block
+        if left < 7:  # the block's tail is padding
+            pos += left
+            continue
+        _crc, length, kind = struct.unpack("<IHB", data[pos:pos + 7])
+        if length == 0 and kind == 0:
+            pos += left
+            continue
+        pending += data[pos + 7:pos + 7 + length]
+        pos += 7 + length
+        if kind in (1, 4):  # a full record, or the last chunk of one
+            record = pb.Record()
+            record.ParseFromString(pending)
+            pending = b""
+            if record.WhichOneof("record_type") == "history":
+                history.append({item.key or "/".join(item.nested_key): json.loads(item.value_json)
+                                for item in record.history.item})
+    return history

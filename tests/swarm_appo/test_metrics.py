@@ -144,3 +144,38 @@ def test_lag_stats_match_numpy():
     stats.reset()
     stats.update(np.array([4]))
     assert (stats.min, stats.mean, stats.max) == (4.0, 4.0, 4.0)
+
+
+def test_resume_gives_one_wandb_history_read_back_from_the_wandb_file(tmp_path):
+    """A run logs 100..400 (its .wandb file misses 400: it died right after writing metrics.jsonl), then resumes
+    from a checkpoint at 300 and logs 400..600 again: the newest wandb run holds 100..600, each step once."""
+    from swarm_appo.metrics import read_wandb_history
+
+    first = MetricsLogger(tmp_path, CFG, wandb_mode="offline", run_name="r")
+    for step in (100, 200, 300):
+        first.log(step, {"charts/sps": float(step)})
+    first.close()
+    with open(tmp_path / "metrics.jsonl", "a") as f:  # logged to the file, never reached wandb
+        f.write(json.dumps({"global_step": 400, "time": 0.0, "charts/sps": 400.0}) + "\n")
+    old_id = first.run_id
+
+    second = MetricsLogger(tmp_path, CFG, wandb_mode="offline", run_name="r", resume_id=old_id, resume_step=300)
+    for step in (400, 500, 600):
+        second.log(step, {"charts/sps": float(step) + 0.5})
+    second.close()
+    assert second.run_id != old_id and (tmp_path / WANDB_ID_FILE).read_text().strip() == second.run_id
+    newest, = [r for r in offline_runs(tmp_path) if r.name.endswith(second.run_id)]
+    history = read_wandb_history(newest / f"run-{second.run_id}.wandb")
+    assert [h["global_step"] for h in history] == [100, 200, 300, 400, 500, 600]
+    assert [h["charts/sps"] for h in history][3:] == [400.5, 500.5, 600.5]  # the redone steps, not the lost ones
+    oldest, = [r for r in offline_runs(tmp_path) if r.name.endswith(old_id)]
+    assert [h["global_step"] for h in read_wandb_history(oldest / f"run-{old_id}.wandb")] == [100, 200, 300]
+    assert [r["global_step"] for r in read_metrics(tmp_path)] == [100, 200, 300, 400, 500, 600]
+
+
+def test_read_wandb_history_refuses_other_files(tmp_path):
+    from swarm_appo.metrics import read_wandb_history
+
+    (tmp_path / "x.wandb").write_bytes(b"not wandb")
+    with pytest.raises(ValueError, match="not a wandb run file"):
+        read_wandb_history(tmp_path / "x.wandb")

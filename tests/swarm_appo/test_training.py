@@ -17,6 +17,7 @@ from quad_env import ObsLayout
 from swarm_appo.checkpoint import load_checkpoint
 from swarm_appo.config import load_config
 from swarm_appo.learner import Learner, stack_fragments
+from swarm_appo.metrics import read_wandb_history
 from swarm_appo.model import model_factory
 from swarm_appo.rollout import RolloutWorker
 from swarm_appo.sampling import RaySampler, init_local_ray
@@ -194,8 +195,12 @@ def test_run_dir_contents_and_resume_continues_counters(tmp_path):
     assert second.agent_steps >= 640 and second.policy_version > first.policy_version
     new_records = read_metrics(run_dir)[len(records):]
     assert new_records and new_records[0]["global_step"] > first.agent_steps
-    assert (run_dir / "wandb_id.txt").read_text().strip() == wandb_id
-    assert len(list((run_dir / "wandb").glob("offline-run-*"))) >= 1
+    # one history: a new wandb run that replays metrics.jsonl, then continues (swarm_appo.metrics)
+    new_id = (run_dir / "wandb_id.txt").read_text().strip()
+    assert new_id != wandb_id
+    newest, = (run_dir / "wandb").glob(f"offline-run-*-{new_id}")
+    steps = [h["global_step"] for h in read_wandb_history(newest / f"run-{new_id}.wandb")]
+    assert steps == [r["global_step"] for r in read_metrics(run_dir)]  # each step once, none missing
 
 
 def test_new_run_never_overwrites_an_old_run(tmp_path):
