@@ -122,12 +122,16 @@ def save_animation_gif(ep: Episode, path: str, frame_every: int = 5, room_half: 
             r = ep.cylinder_radius
             ax.add_patch(Circle((cx, cy), r, color="gray", alpha=0.35) if v == 1 else
                          Rectangle((cx - r, 0.0), 2 * r, 2 * room_half, color="gray", alpha=0.2))
-        goals = ax.scatter([], [], color="red", marker="*", s=40)
-        drones = ax.scatter(ep.pos[0][:, u], ep.pos[0][:, v], c=colors, s=14)
-        hits = ax.scatter([], [], color="black", marker="x", s=40)
-        obstacle_hits = ax.scatter([], [], color="darkorange", marker="X", s=40)
+        goals = ax.scatter([], [], color="red", marker="*", s=40, label="goals")
+        drones = ax.scatter(ep.pos[0][:, u], ep.pos[0][:, v], c=colors, s=14, label="drones (1 s trails)")
+        hits = ax.scatter([], [], color="black", marker="x", s=40, label="drone-drone collision")
+        obstacle_hits = ax.scatter([], [], color="darkorange", marker="X", s=40, label="obstacle collision")
         trails = [ax.plot([], [], color=c, lw=0.6, alpha=0.6)[0] for c in colors]
         artists.append((u, v, goals, drones, (hits, obstacle_hits), trails))
+    _, _, goals0, drones0, (hits0, obstacle_hits0), _ = artists[0]
+    handles = [goals0, drones0, hits0] + ([obstacle_hits0] if len(ep.cylinders) else [])
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    fig.subplots_adjust(bottom=0.16)
     text = fig.suptitle("")
 
     def draw(t):
