@@ -176,15 +176,29 @@ def evaluate_run(rd: Path, scenarios: str, episodes: int, workers: Optional[int]
 
 # ----------------------------------------------------------------------------------------------- aggregate
 def seed_means(episodes_file: Path) -> Dict[str, Dict[str, float]]:
-    """{eval scenario: {metric: mean over the run's episodes}} in table units."""
+    """{eval scenario: {metric: mean over the run's episodes}} in table units, plus "episodes" (their count)."""
     from swarm_appo.eval_tables import TABLE1_METRICS, summarize_episodes
 
     by_scenario: Dict[str, List[dict]] = {}
     for line in episodes_file.read_text().splitlines():
         e = json.loads(line)
         by_scenario.setdefault(e["eval_scenario"], []).append(e)
-    return {s: {m: v[0] for m, v in summarize_episodes(eps, TABLE1_METRICS).items()}
+    return {s: {**{m: v[0] for m, v in summarize_episodes(eps, TABLE1_METRICS).items()}, "episodes": len(eps)}
             for s, eps in by_scenario.items()}
+
+
+POOLED = "all scenarios (mean)"  # the row of a seed pooled over the evaluation scenarios, each weighted equally
+
+
+def pooled_means(per_scenario: Dict[str, Dict[str, float]]) -> Dict[str, float]:
+    """One seed's metrics averaged over its evaluation scenarios (each scenario one vote)."""
+    keys = set.intersection(*(set(m) for m in per_scenario.values()))
+    return {k: float(np.mean([m[k] for m in per_scenario.values()])) for k in keys}
+
+
+def episodes_label(by_row: Dict[str, List[Dict[str, float]]]) -> str:
+    counts = sorted({int(c["episodes"]) for cells in by_row.values() for c in cells if "episodes" in c})
+    return "-".join(str(c) for c in counts[::max(1, len(counts) - 1)]) if counts else "?"
 
 
 def table_markdown(rows: Sequence[str], cells: Dict[str, List[Dict[str, float]]], speeds: Dict[str, List[float]],
@@ -360,13 +374,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 curves.setdefault(label, []).append(read_metrics(rd))
                 ep = rd / EVAL_DIR / "episodes.jsonl"
                 if ep.exists():
-                    for es, means in seed_means(ep).items():
+                    per_scenario = seed_means(ep)
+                    for es, means in per_scenario.items():
                         cells.setdefault(es, {}).setdefault(label, []).append(means)
+                    if len(per_scenario) > 1:
+                        cells.setdefault(POOLED, {}).setdefault(label, []).append(pooled_means(per_scenario))
         labels = [row_label(r) for r in rows]
-        for es, by_row in cells.items():
+        for es in sorted(cells, key=lambda name: name != POOLED):  # the pooled table first
+            by_row = cells[es]
             n = {r: len(v) for r, v in by_row.items()}
-            sections.append(f"**trained on `{sc}`, evaluated on `{es}`** ({args.episodes} episodes per seed, "
-                            f"mean actions, no training aids)\n\n" + table_markdown(labels, by_row, speeds, n))
+            where = f"`{es}`" if es != POOLED else f"{POOLED} of the {len(cells) - 1} below"
+            sections.append(f"**trained on `{sc}`, evaluated on {where}** ({episodes_label(by_row)} episodes per "
+                            f"scenario and seed, mean actions, no training aids)\n\n"
+                            + table_markdown(labels, by_row, speeds, n))
         fig = plot_curves(curves, Path(args.figures) / f"{out.name}_{sc}.png",
                           f"training curves, {sc} (training episodes, with the training aids; running mean over "
                           f"{SMOOTH_RECORDS} iterations); mean over seeds, band min..max")

@@ -117,3 +117,10 @@ def test_smooth_is_a_centred_running_mean():
     y = np.array([0.0, 0.0, 3.0, 0.0, 0.0])
     assert np.allclose(table1.smooth(y, 3), [0.0, 1.0, 1.0, 1.0, 0.0])
     assert np.allclose(table1.smooth(y, 1), y)
+
+
+def test_pooled_row_weights_every_scenario_equally_and_counts_episodes():
+    per_scenario = {"a": {"dist": 1.0, "suc": 10.0, "episodes": 20}, "b": {"dist": 3.0, "suc": 30.0, "episodes": 20}}
+    assert table1.pooled_means(per_scenario) == {"dist": 2.0, "suc": 20.0, "episodes": 20.0}
+    assert table1.episodes_label({"r": [{"episodes": 20}, {"episodes": 20}]}) == "20"
+    assert table1.episodes_label({"r": [{"episodes": 20}], "s": [{"episodes": 50}]}) == "20-50"
