@@ -340,3 +340,18 @@ def test_every_logged_key_is_documented_once(tmp_path):
     assert not undocumented, undocumented
     assert {"swarm/collisions", "swarm/collisions_drone", "eval/collisions_drone", "losses/total_loss"} <= keys
     assert not {"losses/loss", "losses/valid_fraction"} & keys  # the duplicates are gone
+
+
+def test_published_weights_are_cpu_copies_that_later_updates_do_not_touch(tmp_path):
+    """What a rollout worker receives is a CPU snapshot of one version (on a GPU learner: copied off the device);
+    the learner's next in-place optimizer steps must not change it."""
+    cfg = tiny_config(tmp_path, "w")
+    learner = make_learner(cfg)
+    version, weights = learner.cpu_weights()
+    snapshot = {k: v.clone() for k, v in weights.items()}
+    assert all(v.device.type == "cpu" for v in weights.values())
+    learner.train(fixed_fragments(cfg))
+    assert learner.version == version + 1
+    assert all(torch.equal(weights[k], snapshot[k]) for k in weights)
+    moved = [k for k, v in learner.model.state_dict().items() if not torch.equal(v, snapshot[k])]
+    assert moved  # the learner did change its own weights
