@@ -150,7 +150,7 @@ def newest_step(run_dir: Path) -> int:
 
 def history_faults(run_dir: Path) -> Dict[str, int]:
     """Duplicated and missing steps of metrics.jsonl and of the newest wandb run (learner iterations only)."""
-    from swarm_appo.metrics import read_metrics, read_wandb_history
+    from swarm_appo.metrics import read_metrics, wait_for_wandb_history
 
     out = {}
     steps = [r["global_step"] for r in read_metrics(run_dir) if "losses/total_loss" in r]
@@ -159,7 +159,8 @@ def history_faults(run_dir: Path) -> Dict[str, int]:
     out["jsonl_missing"] = len(set(expected) - set(steps))
     run_id = (run_dir / "wandb_id.txt").read_text().strip()
     files = list((run_dir / "wandb").glob(f"offline-run-*-{run_id}/run-{run_id}.wandb"))
-    wsteps = [h["global_step"] for h in read_wandb_history(files[0]) if "losses/total_loss" in h] if files else []
+    history = wait_for_wandb_history(files[0], len(read_metrics(run_dir))) if files else []
+    wsteps = [h["global_step"] for h in history if "losses/total_loss" in h]
     out["wandb_duplicated"] = len(wsteps) - len(set(wsteps))
     out["wandb_missing"] = len(set(expected) - set(wsteps))
     return out

@@ -315,6 +315,17 @@ def read_metrics(run_dir: str | os.PathLike) -> list:
         return [json.loads(line) for line in f if line.strip()]
 
 
+def wait_for_wandb_history(wandb_file: str | os.PathLike, num_records: int, timeout_s: float = 60.0) -> list:
+    """``read_wandb_history`` once the file holds ``num_records`` history records (wandb's service may still be
+    writing just after ``finish()`` on a loaded machine), or what it holds after ``timeout_s``."""
+    end = time.monotonic() + timeout_s
+    while True:
+        history = read_wandb_history(wandb_file) if Path(wandb_file).exists() else []
+        if len(history) >= num_records or time.monotonic() > end:
+            return history
+        time.sleep(0.2)
+
+
 def read_wandb_history(wandb_file: str | os.PathLike) -> list:
     """The history records (dicts, in logged order) of an offline run's ``run-<id>.wandb`` file, read with
     wandb's own record schema (``wandb.proto.wandb_internal_pb2.Record``) from its block format: a 7-byte

@@ -149,7 +149,7 @@ def test_lag_stats_match_numpy():
 def test_resume_gives_one_wandb_history_read_back_from_the_wandb_file(tmp_path):
     """A run logs 100..400 (its .wandb file misses 400: it died right after writing metrics.jsonl), then resumes
     from a checkpoint at 300 and logs 400..600 again: the newest wandb run holds 100..600, each step once."""
-    from swarm_appo.metrics import read_wandb_history
+    from swarm_appo.metrics import wait_for_wandb_history
 
     first = MetricsLogger(tmp_path, CFG, wandb_mode="offline", run_name="r")
     for step in (100, 200, 300):
@@ -165,11 +165,11 @@ def test_resume_gives_one_wandb_history_read_back_from_the_wandb_file(tmp_path):
     second.close()
     assert second.run_id != old_id and (tmp_path / WANDB_ID_FILE).read_text().strip() == second.run_id
     newest, = [r for r in offline_runs(tmp_path) if r.name.endswith(second.run_id)]
-    history = read_wandb_history(newest / f"run-{second.run_id}.wandb")
+    history = wait_for_wandb_history(newest / f"run-{second.run_id}.wandb", 6)
     assert [h["global_step"] for h in history] == [100, 200, 300, 400, 500, 600]
     assert [h["charts/sps"] for h in history][3:] == [400.5, 500.5, 600.5]  # the redone steps, not the lost ones
     oldest, = [r for r in offline_runs(tmp_path) if r.name.endswith(old_id)]
-    assert [h["global_step"] for h in read_wandb_history(oldest / f"run-{old_id}.wandb")] == [100, 200, 300]
+    assert [h["global_step"] for h in wait_for_wandb_history(oldest / f"run-{old_id}.wandb", 3)] == [100, 200, 300]
     assert [r["global_step"] for r in read_metrics(tmp_path)] == [100, 200, 300, 400, 500, 600]
 
 

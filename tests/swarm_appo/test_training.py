@@ -16,7 +16,7 @@ from quad_env import ObsLayout
 from swarm_appo.checkpoint import load_checkpoint
 from swarm_appo.config import load_config
 from swarm_appo.learner import Learner, stack_fragments
-from swarm_appo.metrics import read_wandb_history
+from swarm_appo.metrics import wait_for_wandb_history
 from swarm_appo.model import model_factory
 from swarm_appo.rollout import RolloutWorker
 from swarm_appo.sampling import RaySampler, init_local_ray
@@ -198,8 +198,9 @@ def test_run_dir_contents_and_resume_continues_counters(tmp_path):
     new_id = (run_dir / "wandb_id.txt").read_text().strip()
     assert new_id != wandb_id
     newest, = (run_dir / "wandb").glob(f"offline-run-*-{new_id}")
-    steps = [h["global_step"] for h in read_wandb_history(newest / f"run-{new_id}.wandb")]
-    assert steps == [r["global_step"] for r in read_metrics(run_dir)]  # each step once, none missing
+    expected = [r["global_step"] for r in read_metrics(run_dir)]
+    steps = [h["global_step"] for h in wait_for_wandb_history(newest / f"run-{new_id}.wandb", len(expected))]
+    assert steps == expected  # each step once, none missing
 
 
 def test_new_run_never_overwrites_an_old_run(tmp_path):
