@@ -227,20 +227,24 @@ class MetricsLogger:
             if replay:  # a new wandb run with the whole history, not a continuation holding some steps twice
                 resume_id, tags = uuid.uuid4().hex[:12], (*tags, "resumed")
             self._start_wandb(cfg_dict, wandb_mode, project, run_name or self.run_dir.name, resume_id, entity,
-                              group, tags)
+                              group, tags, write_id=not replay)
             if replay and self._wandb_run is not None:
                 for record in read_metrics(self.run_dir):
                     self._wandb_run.log({k: v for k, v in record.items() if k != "time" and v is not None})
+            if replay:  # named the newest only once it holds the whole history so far
+                atomic_write_bytes(self.run_dir / WANDB_ID_FILE, (self.run_id + "\n").encode())
 
     # ------------------------------------------------------------------ wandb
-    def _start_wandb(self, cfg_dict, mode, project, run_name, resume_id, entity, group, tags) -> None:
+    def _start_wandb(self, cfg_dict, mode, project, run_name, resume_id, entity, group, tags,
+                     write_id: bool = True) -> None:
         import wandb  # imported only when used: it is slow to import
 
         id_file = self.run_dir / WANDB_ID_FILE
         if resume_id is None and id_file.exists():
             resume_id = id_file.read_text().strip() or None
         self.run_id = resume_id or uuid.uuid4().hex[:12]  # not from `random`: seeded runs stay reproducible
-        atomic_write_bytes(id_file, (self.run_id + "\n").encode())
+        if write_id:
+            atomic_write_bytes(id_file, (self.run_id + "\n").encode())
         try:
             self._wandb_run = wandb.init(
                 dir=str(self.run_dir), id=self.run_id, resume="allow", mode=mode, project=project, entity=entity,

@@ -238,6 +238,38 @@ def fetch_metrics(timers: Dict[str, float], driver_time: float) -> Dict[str, flo
     return out
 
 
+def _start_sampling(cfg: TrainConfig, make_model, learner: Learner, device: torch.device, run_dir: Path):
+    """The sampler (serial, or Ray rollout actors on this machine or a cluster), the number of rollout workers,
+    and on a cluster the placement of the learner and the workers (written to cluster.json)."""
+    sampler_seed = cfg.runner.seed + 7919 * learner.version  # a resumed run does not replay old episodes
+    store_values = cfg.algo.value_clip is not None  # behaviour values are only needed for value clipping
+    placement = None  # on a cluster: where the learner and each rollout worker run (cluster.json)
+    if cfg.runner.serial:
+        num_workers = num_rollout_workers(cfg)
+        sampler = SerialSampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
+                                sampler_seed, store_values=store_values,
+                                precision=cfg.runner.inference_precision)
+    else:
+        init_ray(cfg.runner.ray_address)
+        num_workers = num_rollout_workers(cfg)
+        cluster_options = {}
+        if on_cluster(cfg):
+            from swarm_appo.cluster import READY_TIMEOUT_S, Placement
+            placement = Placement(cfg.runner.ray_address, device)
+            cluster_options = dict(scheduling_strategy="SPREAD", ready_timeout_s=READY_TIMEOUT_S)
+        sampler = RaySampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
+                             sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers),
+                             store_values=store_values, precision=cfg.runner.inference_precision,
+                             **cluster_options)
+        if placement is not None:
+            placement.set_workers(sampler.worker_locations())
+            placement.write(run_dir)
+            log.info("learner on %s (%s); %d rollout workers on %d node(s), details in %s",
+                     placement.learner["ip"], device, num_workers,
+                     len({w["node_id"] for w in placement.workers}), run_dir / "cluster.json")
+    return sampler, num_workers, placement
+
+
 def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress: bool = True,
           on_iteration: Optional[Callable[[int, Any], None]] = None) -> RunResult:
     """Run (or resume) one training run; returns where it ended.
@@ -296,36 +328,16 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                            entity=cfg.wandb.entity, group=cfg.wandb.group or model_group(cfg),
                            tags=tuple(dict.fromkeys((*cfg.wandb.tags, *model_tags(cfg)))),
                            resume_step=agent_steps if resume_dir is not None else None)
-    sampler_seed = cfg.runner.seed + 7919 * learner.version  # a resumed run does not replay old episodes
-    store_values = cfg.algo.value_clip is not None  # behaviour values are only needed for value clipping
-    placement = None  # on a cluster: where the learner and each rollout worker run (cluster.json)
-    if cfg.runner.serial:
-        num_workers = num_rollout_workers(cfg)
-        sampler = SerialSampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
-                                sampler_seed, store_values=store_values,
-                                precision=cfg.runner.inference_precision)
-    else:
-        init_ray(cfg.runner.ray_address)
-        num_workers = num_rollout_workers(cfg)
-        cluster_options = {}
-        if on_cluster(cfg):
-            from swarm_appo.cluster import READY_TIMEOUT_S, Placement
-            placement = Placement(cfg.runner.ray_address, device)
-            cluster_options = dict(scheduling_strategy="SPREAD", ready_timeout_s=READY_TIMEOUT_S)
-        try:
-            sampler = RaySampler(cfg.env, make_model, num_workers, cfg.runner.envs_per_worker, cfg.algo.rollout,
-                                 sampler_seed, max_in_flight=max_fragments_in_flight(cfg, num_workers),
-                                 store_values=store_values, precision=cfg.runner.inference_precision,
-                                 **cluster_options)
-        except Exception:  # e.g. the cluster cannot host the workers: leave no wandb run open
-            logger.close()
-            raise
-        if placement is not None:
-            placement.set_workers(sampler.worker_locations())
-            placement.write(run_dir)
-            log.info("learner on %s (%s); %d rollout workers on %d node(s), details in %s",
-                     placement.learner["ip"], device, num_workers,
-                     len({w["node_id"] for w in placement.workers}), run_dir / "cluster.json")
+    # From here on SIGINT / SIGTERM only ask to stop (GracefulStop): a signal during start-up ends the run before
+    # its first iteration, with a final checkpoint and the metrics and wandb run closed.
+    stop = GracefulStop()
+    stop.__enter__()
+    try:
+        sampler, num_workers, placement = _start_sampling(cfg, make_model, learner, device, run_dir)
+    except BaseException:
+        stop.__exit__()
+        logger.close()
+        raise
     threads = learner_threads(cfg, num_workers)
     torch.set_num_threads(threads)  # after the samplers: an in-process RolloutWorker sets 1 thread
     log.info("learner: %d torch thread(s) on %s; %d rollout worker(s)", threads, device, num_workers)
@@ -355,10 +367,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     last_reward: Optional[float] = None
     interrupted = False
     mid_iteration = False  # the learner is between its first update and publishing the new version
-    stop = GracefulStop()
     try:
         time_limit = cfg.runner.time_limit_s or float("inf")
-        stop.__enter__()
         while (agent_steps < cfg.runner.total_agent_steps and time.perf_counter() - t_start < time_limit
                and stop.requested is None):
             t0 = time.perf_counter()

@@ -165,3 +165,29 @@ def test_a_failing_end_of_run_evaluation_still_closes_the_metrics(tmp_path, monk
         train(tiny_config(tmp_path, "ev"), progress=False)
     assert closed
     assert any((tmp_path / "ev" / "checkpoints").glob("ckpt_*.pt"))  # the final checkpoint came first
+
+
+def test_sigterm_during_start_up_stops_before_the_first_iteration_with_everything_closed(tmp_path, monkeypatch,
+                                                                                         sigterm_as_interrupt):
+    """A resume stopped while it starts (e.g. while Ray starts) keeps its counters, and its new wandb run already
+    holds the replayed history (the run is finished, not abandoned)."""
+    import swarm_appo.trainer as trainer_module
+    from swarm_appo.metrics import read_metrics, wait_for_wandb_history
+
+    first = train(tiny_config(tmp_path, "s", **{"wandb.mode": "offline", "runner.final_eval_episodes": 0}),
+                  progress=False)
+    real_start = trainer_module._start_sampling
+
+    def interrupted_start(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives while the samplers start
+        return real_start(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "_start_sampling", interrupted_start)
+    resumed = train(tiny_config(tmp_path, "s", **{"wandb.mode": "offline", "runner.total_agent_steps": 10**6}),
+                    resume_dir=str(first.run_dir), progress=False)
+    assert resumed.interrupted and resumed.agent_steps == first.agent_steps
+    assert load_checkpoint(resumed.checkpoint)["agent_steps"] == first.agent_steps
+    run_id = (first.run_dir / "wandb_id.txt").read_text().strip()
+    newest, = (first.run_dir / "wandb").glob(f"offline-run-*-{run_id}")
+    expected = [r["global_step"] for r in read_metrics(first.run_dir)]
+    assert [h["global_step"] for h in wait_for_wandb_history(newest / f"run-{run_id}.wandb", len(expected))] == expected
