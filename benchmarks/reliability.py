@@ -189,23 +189,40 @@ def kill9_phase(root: Path, kills: int, rng: random.Random) -> Dict[str, int]:
         # what the resumed run says it continues from: the newest valid checkpoint, or a fresh start at 0
         want = f"from {checkpoint_path(run_dir, expected)}" if expected else "starting it afresh at step 0"
         counts["correct_resumes"] += wait_for(lambda: want in log.read_text()[len(seen):], 120.0, 0.2)
-    stop(proc)  # the last one stops cleanly
+    # the last resume runs until it has trained an iteration past its checkpoint, then stops cleanly (a stop
+    # earlier, before its wandb run exists, would leave the killed run's wandb file as the newest)
+    resumed_from = newest_step(run_dir)
+    wait_for(lambda: any(r.get("global_step", 0) > resumed_from for r in _records(run_dir)), 180.0, 0.5)
+    stop(proc)
     counts.update(history_faults(run_dir))
     return counts
+
+
+def _records(run_dir: Path) -> List[dict]:
+    from swarm_appo.metrics import read_metrics
+
+    try:
+        return read_metrics(run_dir)
+    except (OSError, json.JSONDecodeError):  # a line being written
+        return []
 
 
 def actor_kill_phase(root: Path, kills: int, rng: random.Random) -> Dict[str, int]:
     from swarm_appo.metrics import read_metrics
 
-    steps = STEPS_PER_ITERATION * (20 + 10 * kills)
+    steps = STEPS_PER_ITERATION * (60 + 30 * kills)
     proc = launch(root, "actors", [f"runner.total_agent_steps={steps}"])
     killed = 0
+    find = lambda: [p for p in descendants(proc.pid) if "RayRolloutWorker" in cmdline(p)]  # noqa: E731
     for _ in range(kills):
-        time.sleep(rng.uniform(8.0, 15.0))
-        actors = [p for p in descendants(proc.pid) if "RayRolloutWorker" in cmdline(p)]
+        if not wait_for(lambda: bool(find()), 120.0, 0.5):  # the actors exist once Ray has started them
+            break
+        time.sleep(rng.uniform(2.0, 6.0))
+        actors = find()
         if actors:
             os.kill(rng.choice(actors), signal.SIGKILL)
             killed += 1
+            wait_for(lambda: not set(actors) & set(find()) and bool(find()), 120.0, 0.5)  # replaced
     proc.wait()
     records = read_metrics(root / "actors")
     restarts = max((r.get("perf/worker_restarts", 0) for r in records), default=0)

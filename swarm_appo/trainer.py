@@ -323,20 +323,22 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     # Compile the numba kernels once here, so workers load them from the on-disk cache.
     VecQuadEnv(cfg.env, num_envs=1, seed=0).step(np.zeros((cfg.env.num_agents, 4), np.float32))
 
-    logger = MetricsLogger(run_dir, config_to_dict(cfg), wandb_mode=cfg.wandb.mode, project=cfg.wandb.project,
-                           run_name=run_dir.name, resume_id=state.get("wandb_id") if state else None,
-                           entity=cfg.wandb.entity, group=cfg.wandb.group or model_group(cfg),
-                           tags=tuple(dict.fromkeys((*cfg.wandb.tags, *model_tags(cfg)))),
-                           resume_step=agent_steps if resume_dir is not None else None)
-    # From here on SIGINT / SIGTERM only ask to stop (GracefulStop): a signal during start-up ends the run before
-    # its first iteration, with a final checkpoint and the metrics and wandb run closed.
+    # From here on SIGINT / SIGTERM only ask to stop (GracefulStop): a signal during start-up (wandb, Ray, the
+    # workers) ends the run before its first iteration, with a final checkpoint and the metrics and wandb run closed.
     stop = GracefulStop()
     stop.__enter__()
+    logger = None
     try:
+        logger = MetricsLogger(run_dir, config_to_dict(cfg), wandb_mode=cfg.wandb.mode, project=cfg.wandb.project,
+                               run_name=run_dir.name, resume_id=state.get("wandb_id") if state else None,
+                               entity=cfg.wandb.entity, group=cfg.wandb.group or model_group(cfg),
+                               tags=tuple(dict.fromkeys((*cfg.wandb.tags, *model_tags(cfg)))),
+                               resume_step=agent_steps if resume_dir is not None else None)
         sampler, num_workers, placement = _start_sampling(cfg, make_model, learner, device, run_dir)
     except BaseException:
         stop.__exit__()
-        logger.close()
+        if logger is not None:
+            logger.close()
         raise
     threads = learner_threads(cfg, num_workers)
     torch.set_num_threads(threads)  # after the samplers: an in-process RolloutWorker sets 1 thread
