@@ -21,6 +21,15 @@ STEPS_PER_ITERATION = 128
 UPDATES_PER_ITERATION = 2
 
 
+def run_launcher(argv) -> int:
+    """``launchers.local.main(argv)``, then the SIGTERM handler it installs is put back."""
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        return local.main(argv)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @pytest.fixture
 def sigterm_as_interrupt():
     """What the launchers do (``stop_on_sigterm``): a SIGTERM outside the loop must not kill pytest."""
@@ -67,12 +76,8 @@ def test_a_run_that_cannot_learn_stops_with_an_error_naming_the_checkpoint(tmp_p
     monkeypatch.setattr(learner_module, "appo_loss", nan_loss)
     argv = ["--no-progress", *tiny_overrides(tmp_path, "nan", **{"algo.max_consecutive_skips": 6,
                                                                    "runner.total_agent_steps": 10**6})]
-    previous = signal.getsignal(signal.SIGTERM)
-    try:
-        with pytest.warns(UserWarning, match="skipped"):
-            code = local.main(argv)
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    with pytest.warns(UserWarning, match="skipped"):
+        code = run_launcher(argv)
     assert code == 1
     err = capsys.readouterr().err
     assert "6 consecutive updates skipped" in err and "algo.max_consecutive_skips=6" in err
@@ -111,11 +116,7 @@ def test_a_run_dir_that_cannot_be_written_is_one_line_and_exit_2(tmp_path, capsy
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
     argv = ["--no-progress", *tiny_overrides(blocker / "runs", "x")]
-    previous = signal.getsignal(signal.SIGTERM)
-    try:
-        assert local.main(argv) == 2
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    assert run_launcher(argv) == 2
     err = capsys.readouterr().err
     assert "runner.run_dir: cannot write the run directory" in err and "Traceback" not in err
 
@@ -137,11 +138,7 @@ def test_a_full_disk_says_free_space_first_once_without_a_traceback(tmp_path, mo
     monkeypatch.setattr(trainer_module, "save_checkpoint", filling_disk)
     argv = ["--no-progress", *tiny_overrides(tmp_path, "full", **{"runner.checkpoint_every_updates": 1,
                                                                     "runner.final_eval_episodes": 0})]
-    previous = signal.getsignal(signal.SIGTERM)
-    try:
-        assert local.main(argv) == 1
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    assert run_launcher(argv) == 1
     err = capsys.readouterr().err
     assert err.count("is full") == 1 and "Free space there first" in err and "Traceback" not in err
     assert f"--resume {tmp_path / 'full'}" in err
