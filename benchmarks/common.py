@@ -76,11 +76,6 @@ def gemm_rate(precision: str = "fp32", repeats: int = 3, size: int = 1024) -> fl
     return 10 * 2 * size ** 3 / best_time(ten, repeats)
 
 
-def sgemm_rate(repeats: int = 3, size: int = 1024) -> float:
-    """float32 FLOP/s of a size^3 matmul with the current torch thread setting."""
-    return gemm_rate("fp32", repeats, size)
-
-
 def append_results(section: str) -> None:
     """Append one section (Markdown) to benchmarks/RESULTS.md."""
     with RESULTS.open("a") as fh:
