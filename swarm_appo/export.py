@@ -298,9 +298,11 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     formats = [f.strip() for f in args.format.split(",") if f.strip()]
     torch.set_num_threads(1)
+    from swarm_appo.checkpoint import CheckpointCorruptError
+
     try:
         paths = export_checkpoint(args.checkpoint, args.out, formats, args.clip_actions)
-    except (ValueError, FileNotFoundError, ImportError) as exc:
+    except (ValueError, FileNotFoundError, ImportError, CheckpointCorruptError) as exc:
         p.error(str(exc))
     check = json.loads(paths["sidecar"].read_text())["check"]["max_abs_error"]
     for fmt, path in paths.items():

@@ -117,3 +117,18 @@ def test_export_command_on_a_checkpoint(tmp_path, capsys):
         export.main(["--checkpoint", str(run), "--out", str(tmp_path / "x"), "--format", "tflite"])
     err = capsys.readouterr().err
     assert "tflite" in err and "'torchscript', 'onnx'" in err  # the valid formats are listed
+
+
+def test_export_of_a_truncated_checkpoint_is_one_clear_error(tmp_path, capsys):
+    """A damaged checkpoint file is a usage error (exit 2) naming the file, no traceback and no output folder."""
+    run = untrained_checkpoint(tmp_path, "q", ["env.num_agents=4", f"env.num_neighbors={K}"],
+                               TINY_OPTIONS["deepsets"])
+    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+    with pytest.raises(SystemExit) as exit_info:
+        export.main(["--checkpoint", str(broken), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "broken.pt" in err and "truncated" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
