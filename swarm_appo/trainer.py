@@ -15,6 +15,7 @@ import errno
 import logging
 import os
 import random
+import shutil
 import signal
 import threading
 import time
@@ -120,6 +121,20 @@ def fresh_run_dir(root: Path, name: str) -> Path:
         log.warning("%s already holds a run; this run goes to %s (resume the old one with --resume)",
                     root / name, candidate)
     return candidate
+
+
+def remove_failed_start(run_dir: Path, existed_before: Optional[set]) -> None:
+    """Delete what a fresh run that failed to start wrote into ``run_dir`` (all of it if the folder is new;
+    else only the entries not in ``existed_before``)."""
+    if existed_before is None:
+        shutil.rmtree(run_dir, ignore_errors=True)
+    else:
+        for entry in set(run_dir.iterdir()) - existed_before:
+            if entry.is_dir():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+    log.warning("the run failed to start; removed what it had written to %s", run_dir)
 
 
 def pick_device(name: str) -> torch.device:
@@ -302,6 +317,9 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     inference, inference_why = resolve_precision(cfg.runner.inference_precision, torch.device("cpu"), cfg.model.size)
     precisions = (f"learner precision {precision} ({why}); rollout inference on this machine's CPU {inference} "
                   f"({inference_why})")
+    # A fresh run that fails to start (Ray's raylet timing out under load, ...) removes what it made, so no
+    # half-made run dir is left to confuse --resume; entries that were there before are kept.
+    existed_before = set(run_dir.iterdir()) if resume_dir is None and run_dir.is_dir() else None
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         save_config(cfg, run_dir / "config.yaml", notes=[f"on this machine: {precisions}"])
@@ -339,6 +357,8 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
         stop.__exit__()
         if logger is not None:
             logger.close()
+        if resume_dir is None:
+            remove_failed_start(run_dir, existed_before)
         raise
     threads = learner_threads(cfg, num_workers)
     torch.set_num_threads(threads)  # after the samplers: an in-process RolloutWorker sets 1 thread

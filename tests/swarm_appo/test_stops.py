@@ -188,3 +188,24 @@ def test_sigterm_during_start_up_stops_before_the_first_iteration_with_everythin
     newest, = (first.run_dir / "wandb").glob(f"offline-run-*-{run_id}")
     expected = [r["global_step"] for r in read_metrics(first.run_dir)]
     assert [h["global_step"] for h in wait_for_wandb_history(newest / f"run-{run_id}.wandb", len(expected))] == expected
+
+
+@pytest.mark.parametrize("wandb_mode", ["disabled", "offline"])
+def test_a_fresh_run_that_fails_to_start_removes_what_it_made(tmp_path, monkeypatch, wandb_mode):
+    """Ray failing to start (here: the samplers raise) leaves no half-made run dir behind; a folder that was
+    already there keeps what it held."""
+    import swarm_appo.trainer as trainer_module
+
+    def failing_start(*args, **kwargs):
+        raise RuntimeError("raylet did not start in time")
+
+    monkeypatch.setattr(trainer_module, "_start_sampling", failing_start)
+    with pytest.raises(RuntimeError, match="raylet"):
+        train(tiny_config(tmp_path, "new", **{"wandb.mode": wandb_mode}), progress=False)
+    assert not (tmp_path / "new").exists()
+
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "notes.txt").write_text("mine")
+    with pytest.raises(RuntimeError, match="raylet"):
+        train(tiny_config(tmp_path, "old", **{"wandb.mode": wandb_mode}), progress=False)
+    assert [p.name for p in (tmp_path / "old").iterdir()] == ["notes.txt"]
