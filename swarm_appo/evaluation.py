@@ -83,10 +83,12 @@ def random_policy(seed: int) -> Policy:
 
 # ----------------------------------------------------------------------------------------------- episodes
 def fly_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: int,
-                 record_first: bool = False) -> Tuple[List[Dict], Optional[SwarmRecorder]]:
+                 record_first: bool = False, on_step: Optional[Callable[[], None]] = None
+                 ) -> Tuple[List[Dict], Optional[SwarmRecorder]]:
     """``num_episodes`` swarm episodes, all in parallel (one swarm each), seeded: the same seed gives the
     same initial states whatever the policy. Returns the episode stats (swarm order) and, with
-    ``record_first``, a recorder holding the first episode's trajectory."""
+    ``record_first``, a recorder holding the first episode's trajectory. ``on_step`` is called after each
+    control step (a progress bar)."""
     env = VecQuadEnv(env_cfg, num_envs=num_episodes, seed=seed, auto_reset=False)
     obs = env.reset()
     recorder = SwarmRecorder(env, 0) if record_first else None
@@ -94,14 +96,17 @@ def fly_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: in
         obs, _, term, trunc = env.step(policy(obs))
         if recorder is not None:
             recorder.record()
+        if on_step is not None:
+            on_step()
         if (term | trunc).all():
             break
     return env.pop_episode_stats(), recorder
 
 
-def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: int) -> List[Dict]:
+def run_episodes(env_cfg: EnvConfig, policy: Policy, num_episodes: int, seed: int,
+                 on_step: Optional[Callable[[], None]] = None) -> List[Dict]:
     """The stats of ``fly_episodes``."""
-    return fly_episodes(env_cfg, policy, num_episodes, seed)[0]
+    return fly_episodes(env_cfg, policy, num_episodes, seed, on_step=on_step)[0]
 
 
 # <prefix>/<name> of the end-of-run evaluation <- the table metric (swarm_appo.eval_tables.METRICS) it is
@@ -121,12 +126,24 @@ def default_eval_seed(train_seed: int) -> int:
 
 
 def compare_with_random(train_env: EnvConfig, model: torch.nn.Module, num_episodes: int = 8,
-                        seed: int = 12345) -> Dict[str, float]:
+                        seed: int = 12345, progress: bool = False) -> Dict[str, float]:
     """``eval/*`` (trained, mean actions) and ``eval_random/*`` metrics on the same episodes, flown in
-    ``evaluation_env(train_env)`` (the training aids off), as the command line flies them."""
+    ``evaluation_env(train_env)`` (the training aids off), as the command line flies them. ``progress``: a bar
+    over the control steps of both (the end of a training run would otherwise be minutes of silence)."""
     env_cfg = evaluation_env(train_env)
-    out = summarize(run_episodes(env_cfg, model_policy(model), num_episodes, seed), "eval")
-    out.update(summarize(run_episodes(env_cfg, random_policy(seed), num_episodes, seed), "eval_random"))
+    bar = on_step = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=2 * env_cfg.episode_steps, unit="step", dynamic_ncols=True,
+                   desc=f"final evaluation: {num_episodes} episodes, policy then random actions")
+        on_step = lambda: bar.update(1)
+    try:
+        out = summarize(run_episodes(env_cfg, model_policy(model), num_episodes, seed, on_step), "eval")
+        out.update(summarize(run_episodes(env_cfg, random_policy(seed), num_episodes, seed, on_step), "eval_random"))
+    finally:
+        if bar is not None:
+            bar.close()
     if out.get("eval_random/dist"):
         out["eval/dist_ratio_to_random"] = out["eval/dist"] / out["eval_random/dist"]
     return out

@@ -521,7 +521,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                      "training aids off", cfg.runner.final_eval_episodes, cfg.env.episode_duration)
             # in swarm_appo.evaluation.evaluation_env(cfg.env): the training aids off, as the command line evaluates
             final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
-                                             seed=default_eval_seed(cfg.runner.seed))
+                                             seed=default_eval_seed(cfg.runner.seed), progress=progress)
             logger.log(agent_steps, final_eval)
     finally:  # metrics.jsonl and the wandb run are closed even if the evaluation fails (the checkpoint is written)
         logger.close()

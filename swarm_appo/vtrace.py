@@ -4,7 +4,8 @@ Everything is time-major: ``[T, B]`` where T is the fragment length (rollout) an
 trajectories (one per drone). For a step s, with ``rho_t = pi(a_t|x_t) / mu(a_t|x_t)``:
 
     delta_t V = min(rho_bar, rho_t) * (r_t + gamma_t * V(x_{t+1}) - V(x_t))
-    v_s       = V(x_s) + sum_{t>=s} (prod_{i=s}^{t-1} gamma_i) (prod_{i=s}^{t-1} c_i) delta_t V,  c_i = min(c_bar, rho_i)
+    v_s       = V(x_s) + sum_{t>=s} (prod_{i=s}^{t-1} gamma_i) (prod_{i=s}^{t-1} c_i) delta_t V,
+                with c_i = min(c_bar, rho_i)
     A_s       = min(rho_pg_bar, rho_s) * (r_s + gamma_s * v_{s+1} - V(x_s))
 
 computed with the equivalent backward recursion ``v_s - V(x_s) = delta_s V + gamma_s c_s (v_{s+1} - V(x_{s+1}))``.

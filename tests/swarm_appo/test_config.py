@@ -245,7 +245,8 @@ def test_config_error_is_a_value_error():
 
 @pytest.mark.parametrize("row,encoder,symmetry", [("se3_graphormer", "graphormer", "se3"),
                                                   ("se3_kattention", "kattention", "se3"),
-                                                  ("kattention", "kattention", "none"), ("deepsets", "deepsets", "none"),
+                                                  ("kattention", "kattention", "none"),
+                                                  ("deepsets", "deepsets", "none"),
                                                   ("infomarl", "infomarl", "none")])
 def test_paper_row_configs_are_the_paper_config_with_two_keys(row, encoder, symmetry):
     from swarm_appo.config import config_to_dict

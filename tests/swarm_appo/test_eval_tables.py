@@ -176,7 +176,8 @@ def test_serial_and_ray_give_the_same_table_and_the_episodes_of_the_seeds(tmp_pa
     cfg, model = evaluate.load_policy_from_checkpoint(str(run))
     env = evaluate.evaluation_env(cfg.env, scenario="swap_goals")
     policy = evaluate.model_policy(model)  # one torch thread, as the CLI (fixture)
-    direct = evaluate.run_episodes(env, policy, 2, 11) + evaluate.run_episodes(env, policy, 1, evaluate.task_seed(11, 1))
+    direct = (evaluate.run_episodes(env, policy, 2, 11)
+              + evaluate.run_episodes(env, policy, 1, evaluate.task_seed(11, 1)))
     returns = [METRICS["rew"].value(e) for e in direct]
     assert float(rows[1]["reward_mean"]) == pytest.approx(statistics.fmean(returns), rel=1e-12)
     assert float(rows[1]["reward_std"]) == pytest.approx(statistics.pstdev(returns), rel=1e-9)

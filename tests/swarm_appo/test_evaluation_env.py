@@ -33,7 +33,7 @@ def test_evaluation_env_switches_the_training_aids_off_and_keeps_the_rest():
     assert env.episode_stats(0)["respawns"] == 0
 
 
-def test_end_of_run_and_command_line_evaluations_agree_and_fly_without_respawns(tmp_path):
+def test_end_of_run_and_command_line_evaluations_agree_and_fly_without_respawns(tmp_path, capsys):
     # trained with respawns and shaping (the quickstart config), 1 s episodes: random actions crash in them
     run = untrained_checkpoint(tmp_path, "q", ["env.num_agents=3", "env.num_neighbors=2", "env.episode_duration=1.0",
                                                "env.respawn_on_floor=true", "model.encoder=deepsets",
@@ -42,8 +42,10 @@ def test_end_of_run_and_command_line_evaluations_agree_and_fly_without_respawns(
     assert cfg.env.respawn_on_floor
     seed = evaluate.default_eval_seed(cfg.runner.seed)
 
-    # the end-of-run evaluation, called as the trainer calls it
-    final = evaluate.compare_with_random(cfg.env, model, 3, seed=seed)
+    # the end-of-run evaluation, called as the trainer calls it (with its progress bar: 2 x 100 control steps)
+    final = evaluate.compare_with_random(cfg.env, model, 3, seed=seed, progress=True)
+    bar = capsys.readouterr().err
+    assert "final evaluation: 3 episodes" in bar and "200/200" in bar
     # the command line, its default seed is the same
     out = tmp_path / "eval"
     assert evaluate.main(["--checkpoint", str(run), "--episodes", "3", "--scenarios", cfg.env.scenario,

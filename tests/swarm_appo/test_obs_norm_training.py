@@ -1,7 +1,6 @@
 """The learner updates the observation statistics once per batch; workers receive them with the weights."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
