@@ -6,7 +6,7 @@ import platform
 import subprocess
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, List, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
@@ -81,3 +81,23 @@ def append_results(section: str) -> None:
     with RESULTS.open("a") as fh:
         fh.write("\n" + section.rstrip() + "\n")
     print(f"appended to {RESULTS}")
+
+
+def section_header(name: str, started: str, argv: Optional[Sequence[str]], measured: Sequence[str],
+                   load_before: str) -> List[str]:
+    """The first lines of a RESULTS.md section: title, the command as typed, the commit (marked when the
+    ``measured`` packages have uncommitted changes), the machine and the load averages before and now."""
+    import sys
+
+    args = " ".join(argv if argv is not None else sys.argv[1:])
+    return [f"## {name} — {started}", "",
+            f"- command: `{f'python -m benchmarks.{name} {args}'.strip()}`",
+            f"- commit: {commit(list(measured))}",
+            f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}"]
+
+
+def publish(section: str, append: bool) -> None:
+    """Print a section and, unless told not to, append it to RESULTS.md."""
+    print(section)
+    if append:
+        append_results(section)

@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 from typing import Dict, List, Sequence
 
-from benchmarks.common import ROOT, append_results, commit, load_average, machine
+from benchmarks.common import ROOT, load_average, publish, section_header
 
 HOG = "while True: pass"
 
@@ -88,18 +88,14 @@ def main(argv=None) -> int:
         lines.append(f"| {load} | {setting} ({learner_threads_value(setting)}) | {r['agent_steps']:,} | "
                      f"{r['agent_steps_per_s']:,.0f} | {r['agent_steps_per_s'] / base:.2f} |")
     section = "\n".join([
-        f"## loaded_machine — {started}", "",
-        f"- command: `python -m benchmarks.loaded_machine {' '.join(argv if argv is not None else sys.argv[1:])}`",
-        f"- commit: {commit(['swarm_appo', 'launchers', 'quad_env', 'encoders'])}",
-        f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}",
+        *section_header("loaded_machine", started, argv, ["swarm_appo", "launchers", "quad_env", "encoders"],
+                        load_before),
         f"- the quickstart (embedded default config) trained {args.seconds:.0f} s per row; loaded = {args.hogs} "
         f"busy-looping processes in their own session; ratio = agent-steps/s over the first setting's "
         f"({settings[0]}) under the same load",
         "", "| machine | runner.learner_threads | agent steps | agent-steps/s | ratio |", "|---|---|---:|---:|---:|",
         *lines])
-    print(section)
-    if not args.no_append:
-        append_results(section)
+    publish(section, not args.no_append)
     return 0
 
 

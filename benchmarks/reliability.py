@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 from typing import Dict, List
 
-from benchmarks.common import ROOT, append_results, commit, load_average, machine
+from benchmarks.common import ROOT, load_average, publish, section_header
 
 # a quickstart-sized run: 4 swarms x 8 drones x 128 steps = 4096 agent steps per fragment, batch 4096 = one
 # fragment per iteration, 1 minibatch x 2 epochs = 2 updates per iteration
@@ -281,14 +281,9 @@ def main(argv=None) -> int:
         results.update(soak_phase(root, args.soak_minutes))
     lines = [f"| {k} | {v:.1f} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in results.items()]
     section = "\n".join([
-        f"## reliability — {started}", "",
-        f"- command: `python -m benchmarks.reliability {' '.join(argv if argv is not None else sys.argv[1:])}`",
-        f"- commit: {commit(['swarm_appo', 'launchers'])}",
-        f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}",
+        *section_header("reliability", started, argv, ["swarm_appo", "launchers"], load_before),
         f"- runs in {root}", "", "| count | value |", "|---|---|", *lines])
-    print(section)
-    if not args.no_append:
-        append_results(section)
+    publish(section, not args.no_append)
     return 0
 
 
