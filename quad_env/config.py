@@ -51,6 +51,11 @@ class RewardConfig:
     the cost of a crash when ``env.respawn_on_floor`` puts the drone straight back in the air."""
     obstacle_collision: float = 5.0
     """Penalty per *new* drone-obstacle contact (not times dt); it enters the "collision" reward term."""
+    collision_anneal_steps: int = 0
+    """Training schedule, not in the paper (0 = off, the paper's reward throughout): the trainer scales the
+    collision penalties (``collision``, ``proximity``, ``obstacle_collision``) by min(1, agent steps / this),
+    from 0 to their full values, as QuadSwarm anneals its collision penalty. Evaluation always uses the full
+    values."""
 
 
 @dataclass
@@ -256,6 +261,9 @@ class EnvConfig:
                      "obstacle_collision"):
             if not getattr(self.reward, name) >= 0:
                 raise ValueError(f"env.reward.{name} must be >= 0, got {getattr(self.reward, name)!r}")
+        if not isinstance(self.reward.collision_anneal_steps, int) or self.reward.collision_anneal_steps < 0:
+            raise ValueError(f"env.reward.collision_anneal_steps must be an int >= 0, "
+                             f"got {self.reward.collision_anneal_steps!r}")
         if self.reward.collision_form not in COLLISION_FORMS:
             raise ValueError(f"env.reward.collision_form must be one of {list(COLLISION_FORMS)}, "
                              f"got {self.reward.collision_form!r}")

@@ -47,7 +47,7 @@ from quad_env.obstacles import (
     INDEX_SLOTS, OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin, index_obstacles, index_spec,
     lookup_pad,
 )
-from quad_env.params import I_EP_STEPS, REWARD_TERMS, SDF_SPACING, pack_params
+from quad_env.params import F_C_COLL, F_C_OBST, F_C_PROX, I_EP_STEPS, REWARD_TERMS, SDF_SPACING, pack_params
 from quad_env.replay import CollisionReplay
 from quad_env.rng import seed_streams
 from quad_env.scenarios import SPAWN_HALF, SPAWN_MIN_SEP, SPAWN_MIN_Z, make_scenario
@@ -121,6 +121,7 @@ class VecQuadEnv:
         self._rng = seed_streams(seed, E)
         self._fp, self._ip = pack_params(cfg, D, noise=True)
         self._fp_quiet, self._ip_quiet = pack_params(cfg, D, noise=False)
+        self._collision_scale = 1.0
         self._ip_quiet[I_EP_STEPS] = _NEVER
 
         # ---- output buffers (overwritten by every call)
@@ -237,6 +238,24 @@ class VecQuadEnv:
         observe_kernel(self._everyone, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng,
                        self._fp, self._ip, self._obs, self._obst, self._obst_index)
         return self._obs
+
+    # ------------------------------------------------------------------ reward schedule
+    @property
+    def collision_scale(self) -> float:
+        """The factor on the collision penalties (c2, c3, obstacle contacts) now in force; 1 = as configured."""
+        return self._collision_scale
+
+    def set_collision_scale(self, scale: float) -> None:
+        """Scale the collision penalties (``reward.collision``, ``proximity``, ``obstacle_collision``) by
+        ``scale`` in [0, 1] from the next step on (``reward.collision_anneal_steps``: the trainer's annealing)."""
+        scale = float(scale)
+        if not 0.0 <= scale <= 1.0:
+            raise ValueError(f"collision scale must be in [0, 1], got {scale!r}")
+        r = self.cfg.reward
+        for fp in (self._fp, self._fp_quiet):
+            fp[F_C_COLL], fp[F_C_PROX], fp[F_C_OBST] = (r.collision * scale, r.proximity * scale,
+                                                        r.obstacle_collision * scale)
+        self._collision_scale = scale
 
     # ------------------------------------------------------------------ obstacles
     @property

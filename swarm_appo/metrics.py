@@ -57,6 +57,8 @@ METRICS: Dict[str, str] = {
     "charts/sps": "agent steps per second since the last record",
     "charts/elapsed_s": "wall time since the start of this process",
     "charts/learning_rate": "Adam learning rate of the last batch (algo.lr_schedule)",
+    "charts/collision_scale": "factor on the collision penalties c2, c3 and obstacle contacts in the workers' "
+                              "environments (env.reward.collision_anneal_steps; 1 = the paper's reward)",
     # swarm/: the evaluation tables' metrics on the training episodes (training aids on), also per scenario as
     # swarm/<scenario>/<name> (swarm_metric)
     **{f"swarm/{m.name}": m.description for m in TABLE_METRICS.values()},

@@ -70,9 +70,14 @@ class RolloutWorker:
         return os.getpid()
 
     # ------------------------------------------------------------------ weights
-    def set_weights(self, version: int, state_dict: Dict[str, torch.Tensor]) -> None:
+    def set_weights(self, version: int, state_dict: Dict[str, torch.Tensor],
+                    env_schedule: Optional[Dict[str, float]] = None) -> None:
+        """Load a published policy version; ``env_schedule`` (published with it) sets the training schedule's
+        environment values, e.g. ``{"collision_scale": 0.3}`` (``env.reward.collision_anneal_steps``)."""
         self.model.load_state_dict(state_dict)
         self.policy_version = version
+        if env_schedule and "collision_scale" in env_schedule:
+            self.env.set_collision_scale(env_schedule["collision_scale"])
 
     # ------------------------------------------------------------------ sampling
     @torch.no_grad()
@@ -109,6 +114,7 @@ class RolloutWorker:
             final_idx=np.concatenate(final_idx).astype(np.int64) if final_idx else np.zeros((0, 2), np.int64),
             last_obs=self.obs.copy(),
             policy_version=np.full(T, self.policy_version, np.int64),
+            collision_scale=self.env.collision_scale,  # the training schedule's value it was collected with
             episode_stats=episode_stats,
             worker_id=self.worker_id,
             env_time_s=env_time,
@@ -122,7 +128,7 @@ class RolloutWorker:
             actions, log_probs, values = self.model.act(obs, generator=self.generator, with_value=self.store_values)
         return actions.numpy(), log_probs.numpy(), values.numpy()
 
-    def collect_with_weights(self, weights: Optional[Tuple[int, Dict[str, torch.Tensor]]]) -> Dict[str, Any]:
+    def collect_with_weights(self, weights: Optional[Tuple]) -> Dict[str, Any]:
         """Pick up newer weights (if given) between fragments, then sample one fragment."""
         if weights is not None and weights[0] != self.policy_version:
             self.set_weights(*weights)

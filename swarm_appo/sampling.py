@@ -2,7 +2,7 @@
 
 Both expose the same three calls, so the training loop does not know which one it drives:
 
-    sampler.publish(version, state_dict)   # newest weights; workers pick them up between fragments
+    sampler.publish(version, state_dict, env_schedule)   # newest weights; workers pick them up between fragments
     sampler.get() -> fragment              # blocks until one fragment is ready
     sampler.close()
 
@@ -37,7 +37,7 @@ from swarm_appo.rollout import RolloutWorker, worker_seed
 
 log = logging.getLogger(__name__)
 
-Weights = Tuple[int, Dict[str, torch.Tensor]]
+Weights = Tuple[int, Dict[str, torch.Tensor], Optional[Dict[str, float]]]  # version, state dict, env schedule
 
 
 def fragment_nbytes(fragment: Dict[str, Any]) -> int:
@@ -58,8 +58,9 @@ class SerialSampler:
         self._weights: Optional[Weights] = None
         self.restarts = 0
 
-    def publish(self, version: int, state_dict: Dict[str, torch.Tensor]) -> None:
-        self._weights = (version, state_dict)
+    def publish(self, version: int, state_dict: Dict[str, torch.Tensor],
+                env_schedule: Optional[Dict[str, float]] = None) -> None:
+        self._weights = (version, state_dict, env_schedule)
 
     def get(self) -> Dict[str, Any]:
         worker = self.workers[self._next]
@@ -164,8 +165,11 @@ class RaySampler:
                                        worker_seed(self._seed, index, incarnation), index,
                                        store_values=self._store_values, precision=self._precision)
 
-    def publish(self, version: int, state_dict: Dict[str, torch.Tensor]) -> None:
-        ref = ray.put((version, state_dict))  # one object per version, shared by all workers
+    def publish(self, version: int, state_dict: Dict[str, torch.Tensor],
+                env_schedule: Optional[Dict[str, float]] = None) -> None:
+        """The weights of ``version``, with the environment values of the training schedule at this point
+        (``RolloutWorker.set_weights``); workers pick them up before their next fragment."""
+        ref = ray.put((version, state_dict, env_schedule))  # one object per version, shared by all workers
         ray.get(self._store.set.remote(version, [ref]))
 
     def _fill(self) -> None:

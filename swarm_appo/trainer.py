@@ -193,6 +193,14 @@ def scheduled_lr(cfg: TrainConfig, agent_steps: int) -> float:
     return cfg.algo.lr
 
 
+def env_schedule(cfg: TrainConfig, agent_steps: int) -> Dict[str, float]:
+    """The environment values of the training schedule at ``agent_steps``, published with the weights: the
+    collision penalties' scale ``min(1, agent_steps / env.reward.collision_anneal_steps)`` (1 when off). A
+    function of the step count only, so a resumed run continues the same schedule."""
+    anneal = cfg.env.reward.collision_anneal_steps
+    return {"collision_scale": min(1.0, agent_steps / anneal) if anneal > 0 else 1.0}
+
+
 def model_group(cfg: TrainConfig) -> str:
     """Default wandb group: runs of one architecture and symmetry side by side (``deepsets/se3``)."""
     import encoders
@@ -363,7 +371,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     threads = learner_threads(cfg, num_workers)
     torch.set_num_threads(threads)  # after the samplers: an in-process RolloutWorker sets 1 thread
     log.info("learner: %d torch thread(s) on %s; %d rollout worker(s)", threads, device, num_workers)
-    sampler.publish(*learner.cpu_weights())
+    sampler.publish(*learner.cpu_weights(), env_schedule(cfg, agent_steps))
 
     bar = None
     if progress:  # progress toward whichever limit applies: the step budget or, if set, the time limit
@@ -422,7 +430,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
             timers["learner_samples"] += batch_steps
             batch = []
             t2 = time.perf_counter()
-            sampler.publish(*learner.cpu_weights())
+            sampler.publish(*learner.cpu_weights(), env_schedule(cfg, agent_steps))
             mid_iteration = False
             timers["publish"] += time.perf_counter() - t2
 
@@ -447,6 +455,7 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
                 "perf/worker_restarts": float(sampler.restarts),
                 "charts/elapsed_s": now - t_start,
                 "charts/learning_rate": learner.optimizer.param_groups[0]["lr"],
+                "charts/collision_scale": env_schedule(cfg, agent_steps)["collision_scale"],
             })
             record.update(fetch_metrics(timers, driver))
             record.update(system_metrics())

@@ -183,3 +183,38 @@ def test_proximity_over_the_k_nearest_in_the_paper_form(quiet_cfg, form, sensing
             expected[i] = sum(pen[i, j] for j in others if d[i, j] <= radius)
         assert expected[0] < pen[0].sum()
     np.testing.assert_allclose(env.reward_terms["proximity"], -5 * DT * expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.3, 1.0])
+def test_collision_scale_multiplies_the_collision_penalties_only(quiet_cfg, scale):
+    """``set_collision_scale`` (the trainer's annealing, env.reward.collision_anneal_steps) scales c2 and c3 and
+    nothing else: the same approach flown at scale 1 and at ``scale`` differs by that factor in those terms."""
+    def fly(s):
+        cfg = quiet_cfg(num_agents=2, num_neighbors=1, drag_coeff=0.0)
+        env = VecQuadEnv(cfg, num_envs=1, seed=0)
+        env.set_collision_scale(s)
+        hover = 1 / 1.9
+        env.set_state(pos=[[0, 0, 5], [0.3, 0, 5]], vel=[[0.5, 0, 0], [-0.5, 0, 0]],
+                      rot=np.tile(np.eye(3), (2, 1, 1)), omega=np.zeros((2, 3)), motor=np.full((2, 4), np.sqrt(hover)),
+                      goal=[[0, 0, 5], [0.3, 0, 5]])
+        terms = []
+        for _ in range(40):
+            env.step(np.full((2, 4), 2 * hover - 1))
+            terms.append({k: v.copy() for k, v in env.reward_terms.items()})
+        return {k: np.array([t[k] for t in terms]) for k in REWARD_TERMS}, env
+
+    full, _ = fly(1.0)
+    scaled, env = fly(scale)
+    assert env.collision_scale == scale
+    assert (full["collision"] == -5.0).sum() == 2 and (full["proximity"] < 0).any()  # the approach collides
+    for k in REWARD_TERMS:
+        factor = scale if k in ("collision", "proximity") else 1.0
+        np.testing.assert_allclose(scaled[k], factor * full[k], rtol=1e-6, atol=1e-12, err_msg=k)
+
+
+def test_collision_scale_outside_0_1_is_refused(quiet_cfg):
+    env = VecQuadEnv(quiet_cfg(num_agents=2), num_envs=1, seed=0)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="collision scale must be in"):
+            env.set_collision_scale(bad)
+    assert env.collision_scale == 1.0

@@ -356,3 +356,16 @@ def test_published_weights_are_cpu_copies_that_later_updates_do_not_touch(tmp_pa
     assert all(torch.equal(weights[k], snapshot[k]) for k in weights)
     moved = [k for k, v in learner.model.state_dict().items() if not torch.equal(v, snapshot[k])]
     assert moved  # the learner did change its own weights
+
+
+def test_ray_workers_collect_with_the_published_scale(tmp_path, local_ray):
+    cfg = tiny_config(tmp_path, "r")
+    make_model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)
+    sampler = RaySampler(cfg.env, make_model, num_workers=2, envs_per_worker=1, rollout=8, seed=0, max_in_flight=2)
+    try:
+        sampler.publish(0, make_model().state_dict(), {"collision_scale": 0.75})
+        # the first fragments may have been requested before the publish reached the store: later ones use it
+        scales = [sampler.get()["collision_scale"] for _ in range(6)]
+        assert scales[-2:] == [0.75, 0.75]
+    finally:
+        sampler.close()
