@@ -30,6 +30,7 @@ import re
 import tempfile
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 
@@ -84,6 +85,54 @@ def _fsync_dir(directory: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+# ----------------------------------------------------------------------------------------------- payload
+@dataclass
+class TrainingState:
+    """What a checkpoint holds: the one definition of its payload and of its format version (``FORMAT_VERSION``,
+    also in every file's header). The trainer and ``swarm_appo.testing`` write it; resume, evaluation, export
+    and the benchmarks read it.
+
+    Payload keys: ``format``, ``learner`` (``Learner.state_dict()``: model, optimizer, version, num_updates,
+    learner RNG; a policy-only checkpoint has just ``model``), ``agent_steps``, ``config`` (the resolved config
+    tree), ``rng`` (python, numpy, torch; None in a policy-only checkpoint), ``wandb_id``."""
+
+    learner: Dict[str, Any]
+    agent_steps: int
+    config: Dict[str, Any]
+    rng: Optional[Dict[str, Any]] = None
+    wandb_id: Optional[str] = None
+
+    def payload(self) -> Dict[str, Any]:
+        return {"format": FORMAT_VERSION, "learner": self.learner, "agent_steps": int(self.agent_steps),
+                "config": self.config, "rng": self.rng, "wandb_id": self.wandb_id}
+
+    @classmethod
+    def from_payload(cls, payload: Mapping[str, Any], source: Any = "checkpoint") -> "TrainingState":
+        version = payload.get("format", FORMAT_VERSION)
+        if version != FORMAT_VERSION:
+            raise CheckpointCorruptError(f"{source}: payload format {version!r}, this code reads {FORMAT_VERSION}")
+        missing = [k for k in ("learner", "config") if k not in payload]
+        if missing:
+            raise CheckpointCorruptError(f"{source}: not a training checkpoint (no {', '.join(missing)})")
+        return cls(learner=payload["learner"], agent_steps=int(payload.get("agent_steps", 0)),
+                   config=payload["config"], rng=payload.get("rng"), wandb_id=payload.get("wandb_id"))
+
+    def save(self, run_dir: PathLike, metric: Optional[float] = None, keep_last: int = 3) -> Path:
+        """``save_checkpoint`` of this state at step ``agent_steps``."""
+        return save_checkpoint(run_dir, self.payload(), step=self.agent_steps, metric=metric, keep_last=keep_last)
+
+    @classmethod
+    def load(cls, path: PathLike) -> "TrainingState":
+        """The state of one checkpoint file (``CheckpointCorruptError`` if it is damaged)."""
+        return cls.from_payload(load_checkpoint(path), source=path)
+
+    @classmethod
+    def load_latest(cls, run_dir: PathLike) -> Tuple[Optional["TrainingState"], Optional[Path]]:
+        """The newest valid checkpoint of a run (``load_latest_checkpoint``), or ``(None, None)``."""
+        payload, path = load_latest_checkpoint(run_dir)
+        return (None, None) if payload is None else (cls.from_payload(payload, source=path), path)
 
 
 # ----------------------------------------------------------------------------------------------- format

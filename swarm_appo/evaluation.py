@@ -163,24 +163,23 @@ class LoadedPolicy:
 
 def load_checkpoint_policy(path: str) -> LoadedPolicy:
     """The policy of a checkpoint file, or of a run directory's latest valid checkpoint."""
-    from swarm_appo.checkpoint import load_checkpoint, load_latest_checkpoint
+    from swarm_appo.checkpoint import TrainingState
     from swarm_appo.config import config_from_dict
     from swarm_appo.model import model_factory
 
     if os.path.isdir(path):
-        state, _ = load_latest_checkpoint(path)
+        state, _ = TrainingState.load_latest(path)
         if state is None:
             raise FileNotFoundError(f"no valid checkpoint in {path}/checkpoints")
     elif os.path.exists(path):
-        state = load_checkpoint(path)
+        state = TrainingState.load(path)
     else:
         raise FileNotFoundError(f"checkpoint {path} does not exist (give a checkpoint file or a run directory)")
-    cfg = config_from_dict(state["config"])
+    cfg = config_from_dict(state.config)
     factory = model_factory(cfg.env.obs_layout(), cfg.model)
     model = factory()
-    model.load_state_dict(state["learner"]["model"])
-    return LoadedPolicy(cfg, model, factory, int(state.get("agent_steps", 0)),
-                        cfg.runner.name or run_dir_of(path).name)
+    model.load_state_dict(state.learner["model"])
+    return LoadedPolicy(cfg, model, factory, state.agent_steps, cfg.runner.name or run_dir_of(path).name)
 
 
 def load_policy_from_checkpoint(path: str):

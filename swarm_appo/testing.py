@@ -6,7 +6,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from swarm_appo.checkpoint import save_checkpoint
+from swarm_appo.checkpoint import TrainingState
 from swarm_appo.config import config_to_dict, load_config
 from swarm_appo.model import model_factory
 
@@ -16,15 +16,12 @@ def untrained_checkpoint(root, name: str, overrides: Sequence[str] = (), encoder
     """Build the model of ``load_config(config, overrides)`` (default: the quickstart config; ``key=value``
     overrides; ``encoder_kwargs`` replaces the encoder's options), initialised from ``seed``, and save it
     as ``root/name/checkpoints/ckpt_<agent_steps>.pt``. Returns the run directory ``root/name``."""
-    from swarm_appo.trainer import CHECKPOINT_FORMAT
-
     cfg = load_config(config, [f"runner.name={name}", f"runner.seed={seed}", *overrides])
     if encoder_kwargs is not None:
         cfg.model.encoder_kwargs = dict(encoder_kwargs)
     torch.manual_seed(seed)
     model = model_factory(cfg.env.obs_layout(), cfg.model)()
-    state = {"format": CHECKPOINT_FORMAT, "learner": {"model": model.state_dict()}, "agent_steps": agent_steps,
-             "config": config_to_dict(cfg)}
     run_dir = Path(root) / name
-    save_checkpoint(run_dir, state, step=agent_steps)
+    TrainingState(learner={"model": model.state_dict()}, agent_steps=agent_steps,
+                  config=config_to_dict(cfg)).save(run_dir)
     return run_dir

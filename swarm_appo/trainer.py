@@ -28,8 +28,7 @@ import numpy as np
 import torch
 
 from quad_env import REWARD_TERMS, VecQuadEnv
-from swarm_appo.checkpoint import (capture_rng_states, load_latest_checkpoint, restore_rng_states,
-                                   save_checkpoint)
+from swarm_appo.checkpoint import TrainingState, capture_rng_states, restore_rng_states
 from swarm_appo.config import ConfigError, TrainConfig, config_from_dict, config_to_dict, save_config, validate
 from swarm_appo.eval_tables import METRICS as TABLE_METRICS
 from swarm_appo.evaluation import compare_with_random, default_eval_seed
@@ -40,7 +39,6 @@ from swarm_appo.precision import resolve_precision
 from swarm_appo.sampling import RaySampler, SerialSampler, check_reachable, fragment_nbytes, init_ray
 
 log = logging.getLogger(__name__)
-CHECKPOINT_FORMAT = 1
 
 
 class TrainingError(RuntimeError):
@@ -300,239 +298,308 @@ def train(cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress
     ``on_iteration(policy_version, sampler)``, if given, is called after every learner iteration
     (monitoring, fault-injection in tests).
     """
-    # ---------------------------------------------------------------- run directory and config
-    state = None
-    if resume_dir is not None:
-        run_dir = Path(resume_dir)
-        state, ckpt_path = load_latest_checkpoint(run_dir)
-        if cfg is None:
-            import yaml
-            cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
-        if state is None:  # killed before its first checkpoint: nothing to continue, one history to keep
-            log.warning("%s has no checkpoint yet: starting it afresh at step 0 (its metrics so far are dropped, "
-                        "a new wandb run is made)", run_dir)
-            (run_dir / "wandb_id.txt").unlink(missing_ok=True)
-        else:
-            log.info("resuming %s from %s", run_dir, ckpt_path)
-    assert cfg is not None, "train() needs a config or a run directory to resume"
-    validate(cfg)
-    if cfg.runner.ray_address is not None and not cfg.runner.serial:
-        check_reachable(cfg.runner.ray_address)  # before a run dir exists: a typo leaves nothing behind
-    device = pick_device(cfg.runner.device)
-    precision, why = resolve_precision(cfg.runner.precision, device, cfg.model.size)
-    if resume_dir is None:
-        run_dir = fresh_run_dir(Path(cfg.runner.run_dir), cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
-    inference, inference_why = resolve_precision(cfg.runner.inference_precision, torch.device("cpu"), cfg.model.size)
-    precisions = (f"learner precision {precision} ({why}); rollout inference on this machine's CPU {inference} "
-                  f"({inference_why})")
-    # A fresh run that fails to start (Ray's raylet timing out under load, ...) removes what it made, so no
-    # half-made run dir is left to confuse --resume; entries that were there before are kept.
-    existed_before = set(run_dir.iterdir()) if resume_dir is None and run_dir.is_dir() else None
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, run_dir / "config.yaml", notes=[f"on this machine: {precisions}"])
-    except OSError as exc:  # read-only, not a folder, disk full: one line naming the key, not a traceback
-        raise ConfigError(f"runner.run_dir: cannot write the run directory {run_dir}: "
-                          f"{exc.strerror or exc}") from exc
-    log.info(precisions)
+    with Trainer(cfg, resume_dir, progress, on_iteration) as trainer:
+        return trainer.run()
 
-    seed_everything(cfg.runner.seed)
-    layout = cfg.env.obs_layout()
-    make_model = model_factory(layout, cfg.model)
-    learner = Learner(make_model(), cfg.algo, device, seed=cfg.runner.seed, precision=precision)
-    agent_steps = 0
-    if state is not None:
-        learner.load_state_dict(state["learner"])
-        agent_steps = int(state["agent_steps"])
-        restore_rng_states(state["rng"])
 
-    # Compile the numba kernels once here, so workers load them from the on-disk cache.
-    VecQuadEnv(cfg.env, num_envs=1, seed=0).step(np.zeros((cfg.env.num_agents, 4), np.float32))
+class Trainer:
+    """One training run, read top to bottom: ``__init__`` (run directory, config, learner, resumed state),
+    ``start()`` (metrics, wandb, samplers), ``run()`` (the loop of ``iteration()`` + ``record()`` +
+    ``checkpoint()``, then the final checkpoint and ``final_eval()``), and an idempotent ``close()`` that
+    ``__exit__`` calls whatever happened, so metrics.jsonl and the wandb run are always closed."""
 
-    # From here on SIGINT / SIGTERM only ask to stop (GracefulStop): a signal during start-up (wandb, Ray, the
-    # workers) ends the run before its first iteration, with a final checkpoint and the metrics and wandb run closed.
-    stop = GracefulStop()
-    stop.__enter__()
-    logger = None
-    try:
-        logger = MetricsLogger(run_dir, config_to_dict(cfg), wandb_mode=cfg.wandb.mode, project=cfg.wandb.project,
-                               run_name=run_dir.name, resume_id=state.get("wandb_id") if state else None,
-                               entity=cfg.wandb.entity, group=cfg.wandb.group or model_group(cfg),
-                               tags=tuple(dict.fromkeys((*cfg.wandb.tags, *model_tags(cfg)))),
-                               resume_step=agent_steps if resume_dir is not None else None)
-        sampler, num_workers, placement = _start_sampling(cfg, make_model, learner, device, run_dir)
-    except BaseException:
-        stop.__exit__()
-        if logger is not None:
-            logger.close()
+    def __init__(self, cfg: Optional[TrainConfig], resume_dir: Optional[str] = None, progress: bool = True,
+                 on_iteration: Optional[Callable[[int, Any], None]] = None):
+        self.progress, self.on_iteration, self.resume_dir = progress, on_iteration, resume_dir
+        # ------------------------------------------------------------ run directory and config
+        state: Optional[TrainingState] = None
+        if resume_dir is not None:
+            run_dir = Path(resume_dir)
+            state, ckpt_path = TrainingState.load_latest(run_dir)
+            if cfg is None:
+                import yaml
+                cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
+            if state is None:  # killed before its first checkpoint: nothing to continue, one history to keep
+                log.warning("%s has no checkpoint yet: starting it afresh at step 0 (its metrics so far are "
+                            "dropped, a new wandb run is made)", run_dir)
+                (run_dir / "wandb_id.txt").unlink(missing_ok=True)
+            else:
+                log.info("resuming %s from %s", run_dir, ckpt_path)
+        assert cfg is not None, "train() needs a config or a run directory to resume"
+        validate(cfg)
+        if cfg.runner.ray_address is not None and not cfg.runner.serial:
+            check_reachable(cfg.runner.ray_address)  # before a run dir exists: a typo leaves nothing behind
+        self.device = pick_device(cfg.runner.device)
+        precision, why = resolve_precision(cfg.runner.precision, self.device, cfg.model.size)
         if resume_dir is None:
-            remove_failed_start(run_dir, existed_before)
-        raise
-    threads = learner_threads(cfg, num_workers)
-    torch.set_num_threads(threads)  # after the samplers: an in-process RolloutWorker sets 1 thread
-    log.info("learner: %d torch thread(s) on %s; %d rollout worker(s)", threads, device, num_workers)
-    sampler.publish(*learner.cpu_weights(), env_schedule(cfg, agent_steps))
+            run_dir = fresh_run_dir(Path(cfg.runner.run_dir), cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
+        inference, inference_why = resolve_precision(cfg.runner.inference_precision, torch.device("cpu"),
+                                                     cfg.model.size)
+        precisions = (f"learner precision {precision} ({why}); rollout inference on this machine's CPU "
+                      f"{inference} ({inference_why})")
+        # A fresh run that fails to start (Ray's raylet timing out under load, ...) removes what it made, so no
+        # half-made run dir is left to confuse --resume; entries that were there before are kept.
+        self._existed_before = set(run_dir.iterdir()) if resume_dir is None and run_dir.is_dir() else None
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            save_config(cfg, run_dir / "config.yaml", notes=[f"on this machine: {precisions}"])
+        except OSError as exc:  # read-only, not a folder, disk full: one line naming the key, not a traceback
+            raise ConfigError(f"runner.run_dir: cannot write the run directory {run_dir}: "
+                              f"{exc.strerror or exc}") from exc
+        log.info(precisions)
+        self.cfg, self.run_dir, self.resumed_state = cfg, run_dir, state
 
-    bar = None
-    if progress:  # progress toward whichever limit applies: the step budget or, if set, the time limit
-        from tqdm.auto import tqdm
-        bar = tqdm(total=PROGRESS_UNITS, unit="‰", dynamic_ncols=True, desc=run_dir.name,
-                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}{postfix}")
+        seed_everything(cfg.runner.seed)
+        self.make_model = model_factory(cfg.env.obs_layout(), cfg.model)
+        self.learner = Learner(self.make_model(), cfg.algo, self.device, seed=cfg.runner.seed, precision=precision)
+        self.agent_steps = 0
+        if state is not None:
+            self.learner.load_state_dict(state.learner)
+            self.agent_steps = state.agent_steps
+            restore_rng_states(state.rng)
 
-    def checkpoint(metric: Optional[float]) -> Path:
-        ckpt_state = {"format": CHECKPOINT_FORMAT, "learner": learner.state_dict(), "agent_steps": agent_steps,
-                      "config": config_to_dict(cfg), "rng": capture_rng_states(), "wandb_id": logger.run_id}
-        return save_checkpoint(run_dir, ckpt_state, step=agent_steps, metric=metric,
-                                keep_last=cfg.runner.keep_checkpoints)
+        # Compile the numba kernels once here, so workers load them from the on-disk cache.
+        VecQuadEnv(cfg.env, num_envs=1, seed=0).step(np.zeros((cfg.env.num_agents, 4), np.float32))
 
-    # ---------------------------------------------------------------- the loop
-    # agent_steps counts trained fragments only: a batch is counted when the learner has trained on it, and a
-    # batch still being collected when the run stops is dropped, so a checkpoint never counts untrained steps.
-    batch: List[Dict[str, Any]] = []
-    episodes: List[Dict[str, Any]] = []
-    timers = defaultdict(float)  # driver wall time per phase, and worker time per phase
-    t_start = t_log = t_ckpt = time.perf_counter()
-    steps_at_log = agent_steps
-    last_ckpt: Optional[Path] = None
-    last_reward: Optional[float] = None
-    interrupted = False
-    mid_iteration = False  # the learner is between its first update and publishing the new version
-    try:
-        time_limit = cfg.runner.time_limit_s or float("inf")
-        while (agent_steps < cfg.runner.total_agent_steps and time.perf_counter() - t_start < time_limit
-               and stop.requested is None):
-            t0 = time.perf_counter()
-            frag = sampler.get()  # [T, B] fragment
-            timers["wait"] += time.perf_counter() - t0
-            timers["env"] += frag["env_time_s"]
-            timers["inference"] += frag["inference_time_s"]
-            if "fetch_time_s" in frag:  # Ray: moving the fragment to this node + deserialising (part of wait)
-                remote = "remote" if placement is not None and frag["node_id"] != placement.learner_node else "local"
-                timers[f"fetch_{remote}"] += frag["fetch_time_s"]
-                timers[f"fragments_{remote}"] += 1
-                timers["fragment_bytes"] += fragment_nbytes(frag)
-            if placement is not None:
-                placement.count(frag)
-            episodes.extend(frag["episode_stats"])
-            batch.append(frag)
-            batch_steps = sum(f["num_agent_steps"] for f in batch)
-            if batch_steps < cfg.algo.batch_size:
-                continue
+        self.stop = GracefulStop()
+        self.logger: Optional[MetricsLogger] = None
+        self.sampler = self.placement = self.bar = None
+        self.num_workers = 0
+        self.last_ckpt: Optional[Path] = None
+        self.last_reward: Optional[float] = None
+        self._closed = False
 
-            t1 = time.perf_counter()
-            agent_steps += batch_steps
-            lr = scheduled_lr(cfg, agent_steps)
-            for group in learner.optimizer.param_groups:
-                group["lr"] = lr
-            mid_iteration = True
-            stats = learner.train(batch)
-            timers["learner"] += time.perf_counter() - t1
-            timers["learner_samples"] += batch_steps
-            batch = []
-            t2 = time.perf_counter()
-            sampler.publish(*learner.cpu_weights(), env_schedule(cfg, agent_steps))
-            mid_iteration = False
-            timers["publish"] += time.perf_counter() - t2
-
-            # ------------------------------------------------------------ logging
-            now = time.perf_counter()
-            record = dict(stats)
-            record.update(summarize_episodes(episodes))
-            if "charts/episode_reward" in record:
-                last_reward = record["charts/episode_reward"]
-            episodes = []
-            wall = now - t_log
-            driver = max(timers["wait"] + timers["learner"] + timers["publish"], 1e-9)
-            worker = max(timers["env"] + timers["inference"], 1e-9)
-            record.update({
-                "charts/sps": (agent_steps - steps_at_log) / max(wall, 1e-9),
-                "perf/agent_steps_per_s": (agent_steps - steps_at_log) / max(wall, 1e-9),
-                "perf/learner_samples_per_s": timers["learner_samples"] / max(timers["learner"], 1e-9),
-                "perf/transfer_share": (timers["wait"] + timers["publish"]) / driver,
-                "perf/learner_share": timers["learner"] / driver,
-                "perf/env_share": timers["env"] / worker,
-                "perf/inference_share": timers["inference"] / worker,
-                "perf/worker_restarts": float(sampler.restarts),
-                "charts/elapsed_s": now - t_start,
-                "charts/learning_rate": learner.optimizer.param_groups[0]["lr"],
-                "charts/collision_scale": env_schedule(cfg, agent_steps)["collision_scale"],
-            })
-            record.update(fetch_metrics(timers, driver))
-            record.update(system_metrics())
-            logger.log(agent_steps, record)
-            if on_iteration is not None:
-                on_iteration(learner.version, sampler)
-            timers.clear()
-            t_log, steps_at_log = now, agent_steps
-            if bar is not None:
-                bar.update(progress_units(cfg, agent_steps, time.perf_counter() - t_start) - bar.n)
-                skipped = {"skipped": learner.skipped_updates} if learner.skipped_updates else {}
-                bar.set_postfix(steps=f"{agent_steps:,}", sps=f"{record['charts/sps']:.0f}",
-                                reward=f"{last_reward:.2f}" if last_reward is not None else "-",
-                                lag=f"{record['lag/mean']:.1f}", **skipped, refresh=False)
-            limit = cfg.algo.max_consecutive_skips
-            if limit and learner.consecutive_skips >= limit:
-                raise TrainingError(
-                    f"{learner.consecutive_skips} consecutive updates skipped (non-finite loss or gradient; "
-                    f"algo.max_consecutive_skips={limit}): this run cannot learn. Check the reward and the "
-                    f"learning rate; the run directory {run_dir} is intact and its last checkpoint ({last_ckpt}) "
-                    f"precedes the failure; resume it with --resume {run_dir}")
-            every_updates = cfg.runner.checkpoint_every_updates
-            by_updates = every_updates and learner.version % every_updates == 0
-            if now - t_ckpt >= cfg.runner.checkpoint_every_s or by_updates:
-                last_ckpt = checkpoint(last_reward)
-                t_ckpt = time.perf_counter()
-    except KeyboardInterrupt:  # a second Ctrl-C: stop now
-        interrupted = True
-        if mid_iteration:
-            log.warning("interrupted inside a learner iteration: no final checkpoint (its weights match no "
-                        "published version); the last one is %s", last_ckpt)
-        else:
-            log.warning("interrupted: writing a final checkpoint to %s", run_dir)
-    except Exception as exc:
-        sampler.close()
-        logger.close()
-        if bar is not None:
-            bar.close()
-        if isinstance(exc, TrainingError):
+    # ---------------------------------------------------------------- start-up
+    def start(self) -> None:
+        """Metrics logger (and wandb run), samplers, the first published weights, the progress bar."""
+        cfg = self.cfg
+        # From here on SIGINT / SIGTERM only ask to stop (GracefulStop): a signal during start-up (wandb, Ray, the
+        # workers) ends the run before its first iteration, with a final checkpoint and everything closed.
+        self.stop.__enter__()
+        try:
+            state = self.resumed_state
+            self.logger = MetricsLogger(
+                self.run_dir, config_to_dict(cfg), wandb_mode=cfg.wandb.mode, project=cfg.wandb.project,
+                run_name=self.run_dir.name, resume_id=state.wandb_id if state else None, entity=cfg.wandb.entity,
+                group=cfg.wandb.group or model_group(cfg), tags=tuple(dict.fromkeys((*cfg.wandb.tags,
+                                                                                     *model_tags(cfg)))),
+                resume_step=self.agent_steps if self.resume_dir is not None else None)
+            self.sampler, self.num_workers, self.placement = _start_sampling(cfg, self.make_model, self.learner,
+                                                                             self.device, self.run_dir)
+        except BaseException:
+            self.close()
+            if self.resume_dir is None:
+                remove_failed_start(self.run_dir, self._existed_before)
             raise
-        raise stopped_by_error(exc, run_dir, last_ckpt) from exc
-    finally:
-        stop.__exit__()
-    if stop.requested is not None:
-        interrupted = True
-        log.warning("%s: stopped at an iteration boundary, writing a final checkpoint to %s", stop.requested, run_dir)
-    if not (interrupted and mid_iteration):
+        threads = learner_threads(cfg, self.num_workers)
+        torch.set_num_threads(threads)  # after the samplers: an in-process RolloutWorker sets 1 thread
+        log.info("learner: %d torch thread(s) on %s; %d rollout worker(s)", threads, self.device, self.num_workers)
+        self.publish()
+        if self.progress:  # progress toward whichever limit applies: the step budget or, if set, the time limit
+            from tqdm.auto import tqdm
+            self.bar = tqdm(total=PROGRESS_UNITS, unit="‰", dynamic_ncols=True, desc=self.run_dir.name,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}{postfix}")
+
+    def publish(self) -> None:
+        """The learner's weights, with the training schedule's environment values, to the rollout workers."""
+        self.sampler.publish(*self.learner.cpu_weights(), env_schedule(self.cfg, self.agent_steps))
+
+    # ---------------------------------------------------------------- one iteration
+    def iteration(self, batch: List[Dict[str, Any]], batch_steps: int) -> Dict[str, float]:
+        """Train on one batch of fragments and publish the new weights; returns the learner's stats. Between
+        ``learner.train`` and the publish the learner's weights match no published version (``mid_iteration``)."""
+        self.agent_steps += batch_steps
+        lr = scheduled_lr(self.cfg, self.agent_steps)
+        for group in self.learner.optimizer.param_groups:
+            group["lr"] = lr
+        self.mid_iteration = True
+        t1 = time.perf_counter()
+        stats = self.learner.train(batch)
+        self.timers["learner"] += time.perf_counter() - t1
+        self.timers["learner_samples"] += batch_steps
+        t2 = time.perf_counter()
+        self.publish()
+        self.mid_iteration = False
+        self.timers["publish"] += time.perf_counter() - t2
+        return stats
+
+    def record(self, stats: Dict[str, float], episodes: List[Dict[str, Any]], now: float) -> Dict[str, float]:
+        """One metrics record: learner stats, episodes since the last record, speeds and time shares."""
+        timers, cfg = self.timers, self.cfg
+        record = dict(stats)
+        record.update(summarize_episodes(episodes))
+        if "charts/episode_reward" in record:
+            self.last_reward = record["charts/episode_reward"]
+        wall = max(now - self.t_log, 1e-9)
+        driver = max(timers["wait"] + timers["learner"] + timers["publish"], 1e-9)
+        worker = max(timers["env"] + timers["inference"], 1e-9)
+        record.update({
+            "charts/sps": (self.agent_steps - self.steps_at_log) / wall,
+            "perf/agent_steps_per_s": (self.agent_steps - self.steps_at_log) / wall,
+            "perf/learner_samples_per_s": timers["learner_samples"] / max(timers["learner"], 1e-9),
+            "perf/transfer_share": (timers["wait"] + timers["publish"]) / driver,
+            "perf/learner_share": timers["learner"] / driver,
+            "perf/env_share": timers["env"] / worker,
+            "perf/inference_share": timers["inference"] / worker,
+            "perf/worker_restarts": float(self.sampler.restarts),
+            "charts/elapsed_s": now - self.t_start,
+            "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
+            "charts/collision_scale": env_schedule(cfg, self.agent_steps)["collision_scale"],
+        })
+        record.update(fetch_metrics(timers, driver))
+        record.update(system_metrics())
+        return record
+
+    def checkpoint(self) -> Path:
+        """Write the training state (atomically) at ``agent_steps``, scored by the last training return."""
+        state = TrainingState(learner=self.learner.state_dict(), agent_steps=self.agent_steps,
+                              config=config_to_dict(self.cfg), rng=capture_rng_states(), wandb_id=self.logger.run_id)
+        self.last_ckpt = state.save(self.run_dir, metric=self.last_reward, keep_last=self.cfg.runner.keep_checkpoints)
+        return self.last_ckpt
+
+    def _count_fragment(self, frag: Dict[str, Any]) -> None:
+        timers, placement = self.timers, self.placement
+        timers["env"] += frag["env_time_s"]
+        timers["inference"] += frag["inference_time_s"]
+        if "fetch_time_s" in frag:  # Ray: moving the fragment to this node + deserialising (part of wait)
+            remote = "remote" if placement is not None and frag["node_id"] != placement.learner_node else "local"
+            timers[f"fetch_{remote}"] += frag["fetch_time_s"]
+            timers[f"fragments_{remote}"] += 1
+            timers["fragment_bytes"] += fragment_nbytes(frag)
+        if placement is not None:
+            placement.count(frag)
+
+    def _after_iteration(self, record: Dict[str, float]) -> None:
+        """Progress bar, the skipped-updates guard and the periodic checkpoint."""
+        cfg, learner = self.cfg, self.learner
+        if self.bar is not None:
+            self.bar.update(progress_units(cfg, self.agent_steps, time.perf_counter() - self.t_start) - self.bar.n)
+            skipped = {"skipped": learner.skipped_updates} if learner.skipped_updates else {}
+            self.bar.set_postfix(steps=f"{self.agent_steps:,}", sps=f"{record['charts/sps']:.0f}",
+                                 reward=f"{self.last_reward:.2f}" if self.last_reward is not None else "-",
+                                 lag=f"{record['lag/mean']:.1f}", **skipped, refresh=False)
+        limit = cfg.algo.max_consecutive_skips
+        if limit and learner.consecutive_skips >= limit:
+            raise TrainingError(
+                f"{learner.consecutive_skips} consecutive updates skipped (non-finite loss or gradient; "
+                f"algo.max_consecutive_skips={limit}): this run cannot learn. Check the reward and the "
+                f"learning rate; the run directory {self.run_dir} is intact and its last checkpoint "
+                f"({self.last_ckpt}) precedes the failure; resume it with --resume {self.run_dir}")
+        every_updates = cfg.runner.checkpoint_every_updates
+        by_updates = every_updates and learner.version % every_updates == 0
+        if time.perf_counter() - self.t_ckpt >= cfg.runner.checkpoint_every_s or by_updates:
+            self.checkpoint()
+            self.t_ckpt = time.perf_counter()
+
+    # ---------------------------------------------------------------- the run
+    def run(self) -> RunResult:
+        cfg = self.cfg
+        self.start()
+        # agent_steps counts trained fragments only: a batch is counted when the learner has trained on it, and a
+        # batch still being collected when the run stops is dropped, so a checkpoint never counts untrained steps.
+        batch: List[Dict[str, Any]] = []
+        episodes: List[Dict[str, Any]] = []
+        self.timers = defaultdict(float)  # driver wall time per phase, and worker time per phase
+        self.t_start = self.t_log = self.t_ckpt = time.perf_counter()
+        self.steps_at_log = self.agent_steps
+        interrupted = False
+        self.mid_iteration = False  # the learner is between its first update and publishing the new version
         try:
-            last_ckpt = checkpoint(last_reward)
-        except OSError as exc:  # e.g. the disk filled up: the earlier checkpoints are intact
-            sampler.close()
-            logger.close()
-            raise stopped_by_error(exc, run_dir, last_ckpt) from exc
-    if placement is not None:
-        try:
-            placement.set_workers(sampler.worker_locations())  # replacements may sit elsewhere
-        except Exception:  # a worker died just now: keep the last known placement
-            pass
-        placement.write(run_dir, worker_restarts=sampler.restarts)
-    sampler.close()
-    if bar is not None:
-        bar.close()
-    stopped_by = "interrupted" if interrupted else "steps" if agent_steps >= cfg.runner.total_agent_steps else "time"
-    if stopped_by == "time":
-        log.warning("time limit reached (runner.time_limit_s=%g): %s of the planned %s agent steps (%.0f%%)",
-                    cfg.runner.time_limit_s, f"{agent_steps:,}", f"{cfg.runner.total_agent_steps:,}",
-                    100.0 * agent_steps / cfg.runner.total_agent_steps)
-    final_eval: Dict[str, float] = {}
-    try:
-        if cfg.runner.final_eval_episodes > 0 and not interrupted:
-            log.info("end-of-run evaluation: %d seeded episodes of %g s, trained policy and random actions, "
-                     "training aids off", cfg.runner.final_eval_episodes, cfg.env.episode_duration)
-            # in swarm_appo.evaluation.evaluation_env(cfg.env): the training aids off, as the command line evaluates
-            final_eval = compare_with_random(cfg.env, learner.model, cfg.runner.final_eval_episodes,
-                                             seed=default_eval_seed(cfg.runner.seed), progress=progress)
-            logger.log(agent_steps, final_eval)
-    finally:  # metrics.jsonl and the wandb run are closed even if the evaluation fails (the checkpoint is written)
-        logger.close()
-    return RunResult(run_dir, agent_steps, learner.version, last_ckpt, sampler.restarts, interrupted, final_eval,
-                     stopped_by, cfg.runner.total_agent_steps)
+            time_limit = cfg.runner.time_limit_s or float("inf")
+            while (self.agent_steps < cfg.runner.total_agent_steps and time.perf_counter() - self.t_start < time_limit
+                   and self.stop.requested is None):
+                t0 = time.perf_counter()
+                frag = self.sampler.get()  # [T, B] fragment
+                self.timers["wait"] += time.perf_counter() - t0
+                self._count_fragment(frag)
+                episodes.extend(frag["episode_stats"])
+                batch.append(frag)
+                batch_steps = sum(f["num_agent_steps"] for f in batch)
+                if batch_steps < cfg.algo.batch_size:
+                    continue
+                stats = self.iteration(batch, batch_steps)
+                batch = []
+                now = time.perf_counter()
+                record = self.record(stats, episodes, now)
+                episodes = []
+                self.logger.log(self.agent_steps, record)
+                if self.on_iteration is not None:
+                    self.on_iteration(self.learner.version, self.sampler)
+                self.timers.clear()
+                self.t_log, self.steps_at_log = now, self.agent_steps
+                self._after_iteration(record)
+        except KeyboardInterrupt:  # a second Ctrl-C: stop now
+            interrupted = True
+            if self.mid_iteration:
+                log.warning("interrupted inside a learner iteration: no final checkpoint (its weights match no "
+                            "published version); the last one is %s", self.last_ckpt)
+            else:
+                log.warning("interrupted: writing a final checkpoint to %s", self.run_dir)
+        except TrainingError:
+            raise
+        except Exception as exc:
+            raise stopped_by_error(exc, self.run_dir, self.last_ckpt) from exc
+        finally:
+            self.stop.__exit__()
+        if self.stop.requested is not None:
+            interrupted = True
+            log.warning("%s: stopped at an iteration boundary, writing a final checkpoint to %s", self.stop.requested,
+                        self.run_dir)
+        if not (interrupted and self.mid_iteration):
+            try:
+                self.checkpoint()
+            except OSError as exc:  # e.g. the disk filled up: the earlier checkpoints are intact
+                raise stopped_by_error(exc, self.run_dir, self.last_ckpt) from exc
+        if self.placement is not None:
+            try:
+                self.placement.set_workers(self.sampler.worker_locations())  # replacements may sit elsewhere
+            except Exception:  # a worker died just now: keep the last known placement
+                pass
+            self.placement.write(self.run_dir, worker_restarts=self.sampler.restarts)
+        restarts = self.sampler.restarts
+        self._close_sampling()
+        stopped_by = ("interrupted" if interrupted else "steps" if self.agent_steps >= cfg.runner.total_agent_steps
+                      else "time")
+        if stopped_by == "time":
+            log.warning("time limit reached (runner.time_limit_s=%g): %s of the planned %s agent steps (%.0f%%)",
+                        cfg.runner.time_limit_s, f"{self.agent_steps:,}", f"{cfg.runner.total_agent_steps:,}",
+                        100.0 * self.agent_steps / cfg.runner.total_agent_steps)
+        final_eval = self.final_eval() if cfg.runner.final_eval_episodes > 0 and not interrupted else {}
+        return RunResult(self.run_dir, self.agent_steps, self.learner.version, self.last_ckpt, restarts, interrupted,
+                         final_eval, stopped_by, cfg.runner.total_agent_steps)
+
+    def final_eval(self) -> Dict[str, float]:
+        """The end-of-run evaluation (trained policy and random actions on the same seeded episodes), logged."""
+        cfg = self.cfg
+        log.info("end-of-run evaluation: %d seeded episodes of %g s, trained policy and random actions, "
+                 "training aids off", cfg.runner.final_eval_episodes, cfg.env.episode_duration)
+        # in swarm_appo.evaluation.evaluation_env(cfg.env): the training aids off, as the command line evaluates
+        result = compare_with_random(cfg.env, self.learner.model, cfg.runner.final_eval_episodes,
+                                     seed=default_eval_seed(cfg.runner.seed), progress=self.progress)
+        self.logger.log(self.agent_steps, result)
+        return result
+
+    # ---------------------------------------------------------------- clean-up
+    def _close_sampling(self) -> None:
+        if self.sampler is not None:
+            self.sampler.close()
+            self.sampler = None
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def close(self) -> None:
+        """Samplers, progress bar, signal handlers, metrics.jsonl and the wandb run; safe to call again."""
+        if self._closed:
+            return
+        self._closed = True
+        self._close_sampling()
+        self.stop.__exit__()
+        if self.logger is not None:
+            self.logger.close()
+
+    def __enter__(self) -> "Trainer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

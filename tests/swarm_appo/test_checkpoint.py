@@ -183,3 +183,25 @@ def test_rng_states_round_trip_through_a_checkpoint(tmp_path):
     np.testing.assert_array_equal(draws[4], again[4])
     with pytest.raises(KeyError, match="other"):
         restore_rng_states(state["rng"], {"other": gen2})
+
+
+def test_training_state_is_the_one_payload_definition(tmp_path):
+    """TrainingState writes and reads the payload with the format version of the file header; a payload of
+    another version or without the training keys is refused by name."""
+    from swarm_appo.checkpoint import FORMAT_VERSION, TrainingState
+
+    state = TrainingState(learner={"model": {"w": torch.ones(2)}, "version": 3}, agent_steps=4096,
+                          config={"env": {"num_agents": 2}}, rng=None, wandb_id="abc")
+    path = state.save(tmp_path, metric=1.5)
+    assert path.name == "ckpt_000000004096.pt"
+    assert load_checkpoint(path)["format"] == FORMAT_VERSION == read_checkpoint_header(path)["version"]
+    back = TrainingState.load(path)
+    assert (back.agent_steps, back.config, back.wandb_id, back.learner["version"]) == (4096, state.config, "abc", 3)
+    assert torch.equal(back.learner["model"]["w"], torch.ones(2))
+    latest, latest_path = TrainingState.load_latest(tmp_path)
+    assert latest_path == path and latest.agent_steps == 4096
+    assert TrainingState.load_latest(tmp_path / "empty") == (None, None)
+    with pytest.raises(CheckpointCorruptError, match="payload format 99"):
+        TrainingState.from_payload({**state.payload(), "format": 99}, source="x.pt")
+    with pytest.raises(CheckpointCorruptError, match="not a training checkpoint .no config"):
+        TrainingState.from_payload({"format": FORMAT_VERSION, "learner": {}}, source="x.pt")

@@ -124,9 +124,9 @@ def test_a_run_dir_that_cannot_be_written_is_one_line_and_exit_2(tmp_path, capsy
 def test_a_full_disk_says_free_space_first_once_without_a_traceback(tmp_path, monkeypatch, capsys):
     import errno
 
-    import swarm_appo.trainer as trainer_module
+    import swarm_appo.checkpoint as checkpoint_module
 
-    real_save = trainer_module.save_checkpoint
+    real_save = checkpoint_module.save_checkpoint
     calls = []
 
     def filling_disk(*args, **kwargs):
@@ -135,7 +135,7 @@ def test_a_full_disk_says_free_space_first_once_without_a_traceback(tmp_path, mo
             raise OSError(errno.ENOSPC, "No space left on device")
         return real_save(*args, **kwargs)
 
-    monkeypatch.setattr(trainer_module, "save_checkpoint", filling_disk)
+    monkeypatch.setattr(checkpoint_module, "save_checkpoint", filling_disk)  # under TrainingState.save
     argv = ["--no-progress", *tiny_overrides(tmp_path, "full", **{"runner.checkpoint_every_updates": 1,
                                                                     "runner.final_eval_episodes": 0})]
     assert run_launcher(argv) == 1
@@ -209,3 +209,18 @@ def test_a_fresh_run_that_fails_to_start_removes_what_it_made(tmp_path, monkeypa
     with pytest.raises(RuntimeError, match="raylet"):
         train(tiny_config(tmp_path, "old", **{"wandb.mode": wandb_mode}), progress=False)
     assert [p.name for p in (tmp_path / "old").iterdir()] == ["notes.txt"]
+
+
+def test_trainer_close_is_idempotent_and_closes_everything(tmp_path):
+    """Trainer.close (what __exit__ calls after any ending) closes the samplers, the signal handlers and the
+    metrics, and a second call does nothing."""
+    from swarm_appo.trainer import Trainer
+
+    before = signal.getsignal(signal.SIGTERM)
+    with Trainer(tiny_config(tmp_path, "c", **{"runner.final_eval_episodes": 0}), progress=False) as trainer:
+        trainer.start()
+        assert signal.getsignal(signal.SIGTERM) != before  # GracefulStop active
+        assert trainer.sampler is not None and trainer.logger is not None
+    assert trainer.sampler is None and signal.getsignal(signal.SIGTERM) == before
+    assert trainer.logger._file.closed  # metrics.jsonl
+    trainer.close()  # again: nothing to do, no error
