@@ -7,11 +7,14 @@ hash of every source file of the package: any change to any of them selects a fr
 once), and going back to an earlier version finds its folder again.
 
 The root is ``$NUMBA_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/swarm_appo/numba`` (``~/.cache/...``).
-``quad_env/__init__.py`` imports every module that defines kernels inside ``keyed_cache()``.
+Every kernel module decorates with this module's ``njit`` (numba's ``njit``, defined inside ``keyed_cache()``),
+so a kernel caches in the keyed folder however its module is imported (``quad_env/__init__.py`` imports nothing
+heavy: ``import quad_env`` and the observation layout need neither numba nor the kernels).
 """
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import os
 from pathlib import Path
@@ -48,3 +51,26 @@ def keyed_cache(package_dir: Path = PACKAGE_DIR) -> Iterator[Path]:
         yield folder
     finally:
         numba.config.CACHE_DIR = previous
+
+
+@functools.lru_cache(maxsize=None)
+def _hash_of(package_dir: Path) -> str:
+    return source_hash(package_dir)  # once per process: the kernels of one process come from one version
+
+
+def njit(*args, **options):
+    """``numba.njit(**options)`` (the kernels pass ``cache=True``), defined inside ``keyed_cache()`` so the
+    kernel caches in the folder of this version of the sources. Use as ``@njit(cache=True)`` or ``@njit``."""
+    import numba
+
+    def decorate(fn):
+        previous = numba.config.CACHE_DIR
+        numba.config.CACHE_DIR = str(cache_root() / _hash_of(PACKAGE_DIR))
+        try:
+            return numba.njit(**options)(fn)
+        finally:
+            numba.config.CACHE_DIR = previous
+
+    if args and callable(args[0]) and not options:
+        return decorate(args[0])
+    return decorate

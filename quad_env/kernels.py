@@ -31,8 +31,8 @@ downwash is an impulse ``a * control_dt``.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.params import (
     F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,

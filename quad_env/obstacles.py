@@ -19,8 +19,8 @@ The physics (contacts, bounce) and the observation field live in ``quad_env.kern
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.config import EnvConfig
 from quad_env.rng import uniform
 

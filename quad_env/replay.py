@@ -18,8 +18,8 @@ from __future__ import annotations
 from typing import List, Optional
 
 import numpy as np
-from numba import njit
 
+from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.rng import uniform
 
 SNAPSHOT_INTERVAL_S = 0.25  # a swarm's state is kept every this many seconds of its episode ...

@@ -13,7 +13,8 @@ one 64-bit draw per normal about 98.8% of the time, so noise costs a few ns per 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 
 _GAMMA = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)

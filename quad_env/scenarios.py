@@ -23,8 +23,8 @@ from __future__ import annotations
 from typing import Dict, Tuple, Type
 
 import numpy as np
-from numba import njit
 
+from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.config import EnvConfig
 from quad_env.obstacles import OBSTACLE_CLEARANCE
 from quad_env.rng import uniform

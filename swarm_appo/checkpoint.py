@@ -27,7 +27,6 @@ import math
 import os
 import random
 import re
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -37,12 +36,13 @@ from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 import numpy as np
 import torch
 
+from swarm_appo.atomic import TMP_PREFIX, atomic_write_bytes  # noqa: F401  (atomic_write_bytes: re-exported)
+
 FORMAT_NAME = "swarm_appo-checkpoint"
 FORMAT_VERSION = 1
 CHECKPOINT_DIR = "checkpoints"
 BEST_NAME = "best.pt"
 _CKPT_RE = re.compile(r"^ckpt_(\d{12})\.pt$")
-_TMP_PREFIX = ".tmp-"
 _MAX_HEADER_BYTES = 4096
 
 PathLike = Union[str, os.PathLike]
@@ -52,39 +52,6 @@ class CheckpointCorruptError(RuntimeError):
     """A checkpoint file is truncated, corrupted or not a checkpoint at all."""
 
 
-# ----------------------------------------------------------------------------------------------- file writing
-def atomic_write_bytes(path: PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` so that readers only ever see the old or the complete new content."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f"{_TMP_PREFIX}{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    _fsync_dir(path.parent)  # make the rename itself durable
-    return path
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:  # some platforms cannot open directories
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 # ----------------------------------------------------------------------------------------------- payload
@@ -279,7 +246,7 @@ def save_checkpoint(
 
 def _remove_stale_temp_files(directory: Path) -> None:
     """Temp files left by a writer that was killed mid-write (one writer per run directory)."""
-    for p in directory.glob(f"{_TMP_PREFIX}*"):
+    for p in directory.glob(f"{TMP_PREFIX}*"):
         p.unlink(missing_ok=True)
 
 

@@ -25,7 +25,7 @@ from typing import Any, Dict, List, Optional
 import ray
 import torch
 
-from swarm_appo.checkpoint import atomic_write_bytes
+from swarm_appo.atomic import atomic_write_bytes
 
 log = logging.getLogger(__name__)
 

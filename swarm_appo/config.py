@@ -24,7 +24,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 import yaml
 
 from quad_env.config import EnvConfig
-from swarm_appo.checkpoint import atomic_write_bytes
+from swarm_appo.atomic import atomic_write_bytes
 
 DEVICES = ("auto", "cpu", "cuda")
 WANDB_MODES = ("offline", "online", "disabled")

@@ -29,7 +29,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence
 import numpy as np
 
 from quad_env.params import REWARD_TERMS
-from swarm_appo.checkpoint import atomic_write_bytes
+from swarm_appo.atomic import atomic_write_bytes
 from swarm_appo.eval_tables import METRICS as TABLE_METRICS
 
 METRICS_FILE = "metrics.jsonl"

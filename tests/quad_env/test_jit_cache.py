@@ -74,3 +74,47 @@ def test_quad_env_kernels_cache_under_its_source_hash_and_numba_is_restored():
     assert locator.startswith(expected)
     assert numba.config.CACHE_DIR != expected  # other numba users keep their setting
     assert quad_env.VecQuadEnv is not None
+
+
+def test_the_keyed_njit_caches_under_the_hash_however_the_module_is_imported(tmp_path):
+    """A kernel module that decorates with ``jit_cache.njit`` needs no ``keyed_cache()`` block around its import:
+    a change to a dependency alone still selects a fresh cache folder."""
+    cache = tmp_path / "cache"
+    script = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(tmp_path)!r})
+        from pkg.kernels import scaled
+        print(scaled(2.0), scaled._cache._cache_path)
+    """)
+
+    def write(constant):
+        make_package(tmp_path, constant)
+        kernels = (tmp_path / "pkg" / "kernels.py").read_text()
+        (tmp_path / "pkg" / "kernels.py").write_text(kernels.replace("from numba import njit",
+                                                                     "from pkg.jit_cache import njit"))
+
+    def run_plain():
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
+                             check=True).stdout.split()
+        return float(out[0]), out[1]
+
+    write(3.0)
+    value, path = run_plain()
+    assert value == 6.0 and path.startswith(str(cache / jit_cache.source_hash(tmp_path / "pkg")))
+    write(5.0)  # only the inlined constant changes
+    value, new_path = run_plain()
+    assert value == 10.0 and new_path != path
+
+
+def test_light_imports_load_neither_numba_nor_torch():
+    """``import quad_env`` (config and layout) loads neither; ``encoders`` needs the layout only, so no numba;
+    ``swarm_appo.config`` no torch (it loads them only to validate a config)."""
+    def loaded(statement, modules):
+        code = f"import sys\n{statement}\nprint(*[m in sys.modules for m in {modules!r}])"
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+
+    assert loaded("import quad_env", ["numba", "torch"]) == ["False", "False"]
+    assert loaded("import encoders", ["numba"]) == ["False"]
+    assert loaded("import swarm_appo.config", ["torch", "numba"]) == ["False", "False"]
+    assert loaded("from quad_env import VecQuadEnv", ["numba"]) == ["True"]  # the simulator on first use
