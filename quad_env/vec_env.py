@@ -41,7 +41,8 @@ from quad_env.kernels import (
     ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_OBST,
     ACC_OBST_GRACE, ACC_RESPAWNS, ACC_RETURN, ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS,
     ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE, AG_LAST_OUT, AG_OBST_GRACE, AG_REACHED, NUM_ACC, NUM_AGENT_ACC,
-    SUCCESS_HOLD_S, all_finite, observe_kernel, refresh_contacts_kernel, respawn_kernel, spawn_kernel, step_with_metrics_kernel,
+    SUCCESS_HOLD_S, all_finite, observe_kernel, refresh_contacts_kernel, respawn_kernel, spawn_kernel,
+    step_with_metrics_kernel,
 )
 from quad_env.obstacles import (
     INDEX_SLOTS, OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin, index_obstacles, index_spec,
@@ -257,6 +258,15 @@ class VecQuadEnv:
                                                         r.obstacle_collision * scale)
         self._collision_scale = scale
 
+    def replay_info(self) -> Optional[dict]:
+        """Collision replay (``env.replay_prob``) as it stands, None when off: ``stored`` (entries held),
+        ``next_slot`` (written next; the oldest once full) and ``replaying`` (bool [E]: the swarm's current
+        episode restarted from a stored state)."""
+        if self._replay is None:
+            return None
+        return {"stored": int(self._replay.count), "next_slot": int(self._replay.next),
+                "replaying": self._replay.replayed.copy()}
+
     # ------------------------------------------------------------------ obstacles
     @property
     def obstacle_grid(self) -> np.ndarray:
@@ -327,8 +337,8 @@ class VecQuadEnv:
         With ``noise=False`` there is no thrust noise, no sensor noise and no random collision kick; the
         step is deterministic. No episode ends and nothing auto-resets (the episode clock still advances,
         which sets the re-orthonormalisation schedule, and the episode metrics accumulate: see
-        ``episode_stats``; the last-N-seconds distances never count, the episode never nearing its end). Observation, reward and ``reward_terms`` buffers
-        are updated as in ``step``.
+        ``episode_stats``; the last-N-seconds distances never count, the episode never nearing its end).
+        Observation, reward and ``reward_terms`` buffers are updated as in ``step``.
         """
         act = self._check_actions(actions)
         fp, ip = (self._fp, self._ip.copy()) if noise else (self._fp_quiet, self._ip_quiet)

@@ -137,7 +137,7 @@ def test_collisions_count_after_the_grace_period_and_break_success(hover_env):
     pos[1] = pos[0] + [0.0, 2.0, 0.0]  # separate them again
     env.set_state(pos=pos, goal=pos, vel=np.zeros((4, 3)))
     hold(env, GRACE - 12)
-    assert int(env._step_count[0]) == GRACE - 1
+    assert env.episode_stats(0)["length"] == GRACE - 1
     approach(env, 2, 3)  # step GRACE: still in the grace period (the first 1.5 s)
     assert env.episode_stats(0)["collisions_after_grace"] == 0
     pos = env.get_state().pos

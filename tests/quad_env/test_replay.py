@@ -41,7 +41,7 @@ def test_replay_restarts_from_the_state_stored_before_the_collision(hover_env):
             env.set_obstacles(np.roll(grid, 3, axis=1))
         env.step(env.hover_action)
         states[t] = env.get_state()
-        assert int(env._step_count[0]) == t
+        assert env.episode_stats(0)["length"] == t
     assert env.episode_stats(0)["collisions_after_grace"] == 1
     stored = (collide_at - LOOKBACK) // INTERVAL * INTERVAL  # 25: the last snapshot 1.5 s or more before
     assert stored == 25
@@ -54,7 +54,7 @@ def test_replay_restarts_from_the_state_stored_before_the_collision(hover_env):
     for t in (stored - 1, stored + 1, stored + INTERVAL):  # (the drift makes every step's positions differ)
         assert not np.array_equal(now.pos, states[t].pos)
     np.testing.assert_array_equal(env.obstacle_grid, grid)  # not a fresh layout
-    assert int(env._step_count[0]) == 0  # a whole new episode
+    assert env.episode_stats(0)["length"] == 0  # a whole new episode
     env.step(env.hover_action)
     st = env.episode_stats(0)
     assert st["replayed"] and st["scenario"] == "static_same_goal" and st["length"] == 1
@@ -84,7 +84,8 @@ def test_replay_happens_with_the_configured_probability_and_is_deterministic(qui
     flags, obs, env = many_crashes(quiet_cfg, 0.3)
     assert not flags[0].any()  # nothing to replay in the first episodes
     fresh = int((~flags).sum())  # each fresh episode stored one state (replayed ones, which crash too, none)
-    assert fresh > 256 and env._replay.count == 256 and env._replay.next == fresh % 256  # oldest overwritten
+    info = env.replay_info()
+    assert fresh > 256 and info["stored"] == 256 and info["next_slot"] == fresh % 256  # oldest overwritten
     share = flags[1:].mean()  # 600 resets
     assert abs(share - 0.3) < 0.075  # 4 standard deviations
     flags2, obs2, _ = many_crashes(quiet_cfg, 0.3)
@@ -98,7 +99,7 @@ def test_replay_happens_with_the_configured_probability_and_is_deterministic(qui
 
 def test_no_replay_when_off_on_explicit_resets_and_without_auto_reset(quiet_cfg, hover_env):
     flags, obs_off, env = many_crashes(quiet_cfg, 0.0, E=20, episodes=2)
-    assert env._replay is None and not flags.any()
+    assert env.replay_info() is None and not flags.any()
     # replay on, but no collision ever stored: the env is bit-identical to one without replay
     def quiet_run(prob):
         env = VecQuadEnv(quiet_cfg(num_agents=2, num_neighbors=1, episode_duration=0.5, replay_prob=prob),
@@ -109,9 +110,9 @@ def test_no_replay_when_off_on_explicit_resets_and_without_auto_reset(quiet_cfg,
         np.testing.assert_array_equal(a, b)
     # a full buffer, then an explicit reset: fresh spawns
     _, _, env = many_crashes(quiet_cfg, 1.0, E=10, episodes=1)
-    assert env._replay.count == 10
+    assert env.replay_info()["stored"] == 10
     env.reset()
-    assert not env._replay.replayed.any()
+    assert not env.replay_info()["replaying"].any()
     # auto_reset=False (evaluation): never replays
     env = hover_env(n=2, replay_prob=1.0, episode_duration=1.7)
     env.auto_reset = False
@@ -119,8 +120,8 @@ def test_no_replay_when_off_on_explicit_resets_and_without_auto_reset(quiet_cfg,
         if t == 160:
             crash_pairs(env)
         env.step(env.hover_action)
-    assert env._replay.count == 1
+    assert env.replay_info()["stored"] == 1
     with pytest.raises(RuntimeError, match="reset"):
         env.step(env.hover_action)
     env.reset()
-    assert not env._replay.replayed.any()
+    assert not env.replay_info()["replaying"].any()

@@ -3,7 +3,6 @@ agent steps, and the scale travels with the published weights to every rollout w
 in test_training.py, next to the module's Ray fixture)."""
 import pytest
 
-from quad_env import ObsLayout
 from swarm_appo.config import ConfigError, load_config
 from swarm_appo.model import model_factory
 from swarm_appo.sampling import SerialSampler
@@ -26,7 +25,7 @@ def test_a_negative_anneal_is_a_config_error_naming_the_key(tmp_path):
 
 def test_serial_workers_collect_with_the_published_scale(tmp_path):
     cfg = tiny_config(tmp_path, "w")
-    make_model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)
+    make_model = model_factory(cfg.env.obs_layout(), cfg.model)
     sampler = SerialSampler(cfg.env, make_model, num_workers=2, envs_per_worker=1, rollout=8, seed=0)
     sampler.publish(0, make_model().state_dict(), {"collision_scale": 0.25})
     assert [sampler.get()["collision_scale"] for _ in range(2)] == [0.25, 0.25]

@@ -5,7 +5,6 @@ import pytest
 import torch
 
 from encoders.obs_norm import FieldScaleNorm
-from quad_env import ObsLayout
 from swarm_appo.config import ConfigError, load_config
 from swarm_appo.learner import Learner, stack_fragments
 from swarm_appo.model import model_factory
@@ -24,7 +23,7 @@ def tiny_config(**extra):
 def test_learner_folds_each_batch_into_the_statistics_and_workers_get_them():
     torch.manual_seed(0)
     cfg = tiny_config()
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     make_model = model_factory(layout, cfg.model)
     worker = RolloutWorker(cfg.env, make_model, cfg.runner.envs_per_worker, cfg.algo.rollout, seed=1)
     learner = Learner(make_model(), cfg.algo, torch.device("cpu"), seed=0)

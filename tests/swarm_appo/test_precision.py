@@ -97,7 +97,7 @@ def test_bf16_loss_and_gradients_agree_with_fp32_on_a_fixed_batch(tmp_path, enco
     cfg = tiny_config(tmp_path, "p", **{"model.encoder": encoder, "model.size": "small",
                                         "model.body_frame_obs": "false"})
     fragments = fixed_fragments(cfg)
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     grads, losses = {}, {}
     for precision in ("fp32", "bf16"):
         torch.manual_seed(0)
@@ -124,7 +124,7 @@ def test_bf16_worker_log_probs_match_the_fp32_learner_at_lag_zero(tmp_path):
     the importance ratios of fresh data stay near 1."""
     cfg = tiny_config(tmp_path, "w", **{"model.encoder": "se3_kattention", "model.size": "small",
                                         "model.body_frame_obs": "false"})
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     make = model_factory(layout, cfg.model)
     torch.manual_seed(0)
     weights = make().state_dict()

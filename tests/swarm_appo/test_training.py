@@ -12,7 +12,6 @@ import pytest
 import ray
 import torch
 
-from quad_env import ObsLayout
 from swarm_appo.checkpoint import load_checkpoint
 from swarm_appo.config import load_config
 from swarm_appo.learner import Learner, stack_fragments
@@ -46,7 +45,7 @@ def read_metrics(run_dir: Path) -> list:
 
 def fixed_fragments(cfg, seed=0, n=2):
     """Fragments from a worker whose weights are the ones ``make_learner(cfg, seed)`` starts with."""
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     torch.manual_seed(seed)
     worker = RolloutWorker(cfg.env, model_factory(layout, cfg.model), cfg.runner.envs_per_worker,
                            cfg.algo.rollout, seed)
@@ -55,7 +54,7 @@ def fixed_fragments(cfg, seed=0, n=2):
 
 
 def make_learner(cfg, seed=0):
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     torch.manual_seed(seed)
     return Learner(model_factory(layout, cfg.model)(), cfg.algo, torch.device("cpu"), seed=seed)
 
@@ -63,7 +62,7 @@ def make_learner(cfg, seed=0):
 # --------------------------------------------------------------------------- sampling
 def test_acting_without_the_critic_gives_the_same_fragment(tmp_path):
     cfg = tiny_config(tmp_path, "v")
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     make = model_factory(layout, cfg.model)
     torch.manual_seed(0)
     weights = make().state_dict()
@@ -268,7 +267,7 @@ def test_ray_run_with_two_actors_writes_run_dir(tmp_path, local_ray):
 
 def test_killed_rollout_actor_is_replaced_and_sampling_goes_on(tmp_path, local_ray):
     cfg = tiny_config(tmp_path, "k")
-    layout = ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs)
+    layout = cfg.env.obs_layout()
     make_model = model_factory(layout, cfg.model)
     sampler = RaySampler(cfg.env, make_model, num_workers=2, envs_per_worker=2, rollout=16, seed=0,
                          max_in_flight=4)
@@ -360,7 +359,7 @@ def test_published_weights_are_cpu_copies_that_later_updates_do_not_touch(tmp_pa
 
 def test_ray_workers_collect_with_the_published_scale(tmp_path, local_ray):
     cfg = tiny_config(tmp_path, "r")
-    make_model = model_factory(ObsLayout(cfg.env.num_neighbors, cfg.env.neighbor_obs), cfg.model)
+    make_model = model_factory(cfg.env.obs_layout(), cfg.model)
     sampler = RaySampler(cfg.env, make_model, num_workers=2, envs_per_worker=1, rollout=8, seed=0, max_in_flight=2)
     try:
         sampler.publish(0, make_model().state_dict(), {"collision_scale": 0.75})
