@@ -44,6 +44,7 @@ def test_sigterm_at_a_random_moment_stops_at_an_iteration_boundary(tmp_path, sig
                                                 "runner.final_eval_episodes": 0})
     rng = random.Random(seed)
     timer = []
+    sigint_before = signal.getsignal(signal.SIGINT)  # default_int_handler, or SIG_IGN in a background job
 
     def on_iteration(version, sampler):  # once the loop runs: a SIGTERM 0-150 ms later, anywhere in the loop
         if not timer:
@@ -61,7 +62,7 @@ def test_sigterm_at_a_random_moment_stops_at_an_iteration_boundary(tmp_path, sig
     assert state["agent_steps"] == STEPS_PER_ITERATION * version == result.agent_steps
     logged = [r["global_step"] for r in read_metrics(result.run_dir) if "losses/total_loss" in r]
     assert logged[-1] == state["agent_steps"]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored after the run
+    assert signal.getsignal(signal.SIGINT) is sigint_before  # handlers restored after the run
 
 
 def test_a_run_that_cannot_learn_stops_with_an_error_naming_the_checkpoint(tmp_path, monkeypatch, capsys):
