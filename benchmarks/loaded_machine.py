@@ -68,6 +68,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-append", action="store_true")
     args = p.parse_args(argv)
     settings = [s.strip() for s in args.threads.split(",") if s.strip()]
+    if not settings or any(s != "all" and not (s.isdigit()) for s in settings):
+        p.error(f"--threads: comma-separated learner_threads values (0 = default, a number, or all), "
+                f"got {args.threads!r}")
     root = Path(tempfile.mkdtemp(prefix="loaded_machine_"))
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     results = {}

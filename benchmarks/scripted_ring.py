@@ -61,12 +61,18 @@ def main(argv: Sequence[str] = None) -> int:
     from swarm_appo.eval_tables import METRICS
     from swarm_appo.evaluation import default_eval_seed, evaluation_env
 
+    try:
+        radii = [float(r) for r in args.radii.split(",")]
+    except ValueError:
+        p.error(f"--radii: comma-separated numbers in metres, got {args.radii!r}")
+    if any(not r >= 0 for r in radii):
+        p.error(f"--radii: radii must be >= 0, got {args.radii!r}")
     cfg = load_config(args.config, [])
     env_cfg = evaluation_env(cfg.env)
     seed = default_eval_seed(cfg.runner.seed)
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     rows = []
-    for radius in (float(r) for r in args.radii.split(",")):
+    for radius in radii:
         m = fly_ring(env_cfg, radius, args.episodes, seed)
         rows.append(f"| scripted ring r = {radius:.2f} m | " + " | ".join(f"{m[k]:.2f}" for k in COLUMNS) + " |")
         print(rows[-1], flush=True)

@@ -34,3 +34,10 @@ def test_table_has_a_row_per_load_and_setting_with_ratios_to_the_default(monkeyp
     out = capsys.readouterr().out
     assert f"| loaded | all ({os.cpu_count()}) | 200 | 100 | 0.20 |" in out
     assert "| quiet | 0 (0) | 2,000 | 1,000 | 1.00 |" in out and "| quiet | all" in out and "0.80 |" in out
+
+
+def test_bad_thread_settings_are_a_usage_error(capsys):
+    import pytest
+    with pytest.raises(SystemExit) as exit_info:
+        loaded_machine.main(["--threads", "two", "--no-append"])
+    assert exit_info.value.code == 2 and "--threads" in capsys.readouterr().err

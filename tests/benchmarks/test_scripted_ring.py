@@ -22,3 +22,11 @@ def test_the_controller_holds_the_ring_and_radius_zero_crowds_the_goal():
     assert abs(ring["dist"] - 0.35) < 0.1  # mean over the last 5 s: arrived and holding the slot
     crowd = scripted_ring.fly_ring(env_cfg, 0.0, episodes=2, seed=5)
     assert crowd["cold"] > 5 * max(ring["cold"], 1.0)  # all eight at one point keep hitting each other
+
+
+def test_bad_radii_are_a_usage_error(capsys):
+    import pytest
+    for bad in ("a,b", "-0.3"):
+        with pytest.raises(SystemExit) as exit_info:
+            scripted_ring.main(["--radii", bad, "--no-append"])
+        assert exit_info.value.code == 2 and "--radii" in capsys.readouterr().err
