@@ -402,7 +402,8 @@ class Trainer:
 
     def publish(self) -> None:
         """The learner's weights, with the training schedule's environment values, to the rollout workers."""
-        self.sampler.publish(*self.learner.cpu_weights(), env_schedule(self.cfg, self.agent_steps))
+        self.schedule = env_schedule(self.cfg, self.agent_steps)  # also logged by record()
+        self.sampler.publish(*self.learner.cpu_weights(), self.schedule)
 
     # ---------------------------------------------------------------- one iteration
     def iteration(self, batch: List[Dict[str, Any]], batch_steps: int) -> Dict[str, float]:
@@ -425,7 +426,7 @@ class Trainer:
 
     def record(self, stats: Dict[str, float], episodes: List[Dict[str, Any]], now: float) -> Dict[str, float]:
         """One metrics record: learner stats, episodes since the last record, speeds and time shares."""
-        timers, cfg = self.timers, self.cfg
+        timers = self.timers
         record = dict(stats)
         record.update(summarize_episodes(episodes))
         if "charts/episode_reward" in record:
@@ -444,7 +445,7 @@ class Trainer:
             "perf/worker_restarts": float(self.sampler.restarts),
             "charts/elapsed_s": now - self.t_start,
             "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
-            "charts/collision_scale": env_schedule(cfg, self.agent_steps)["collision_scale"],
+            "charts/collision_scale": self.schedule["collision_scale"],
         })
         record.update(fetch_metrics(timers, driver))
         record.update(system_metrics())
