@@ -84,6 +84,11 @@ class ModelConfig:
     """Multiplies the Xavier-uniform init of the actor's last layer (1 = the paper). 0.01 (PPO practice)
     makes the untrained policy command ``init_action_mean`` in every state instead of a random state-dependent
     thrust pattern that flips a drone within a second."""
+    critic: str = "local"
+    """Value function input: "local" (the drone's own observation, as the actor; the paper) or "central" (MAPPO:
+    also the swarm's global state, every drone's own-state block: position relative to its goal, velocity,
+    rotation, body rates, through a DeepSets over the drones). The actor stays decentralised either way; the
+    global state is read from the fragment's observations (no extra simulation or data)."""
 
 
 @dataclass
@@ -599,6 +604,7 @@ def _check_model(cfg: TrainConfig) -> None:
     _check(m.size in encoders.SIZES, "model.size", f"must be one of {list(encoders.SIZES)}", m.size)
     _check(m.symmetry is None or m.symmetry in encoders.SYMMETRIES, "model.symmetry",
            f"must be one of {list(encoders.SYMMETRIES)} or null (the encoder's own)", m.symmetry)
+    _check(m.critic in encoders.CRITICS, "model.critic", f"must be one of {list(encoders.CRITICS)}", m.critic)
     try:
         _, symmetry = encoders.resolve(m.encoder, m.symmetry)
     except ValueError as e:

@@ -36,7 +36,17 @@ def stack_fragments(fragments: List[Dict[str, Any]]) -> Dict[str, np.ndarray]:
     out["policy_version"] = np.concatenate(versions, axis=1)  # [T, B]
     out["final_obs"] = np.concatenate(final_obs)  # [M, D]
     out["final_idx"] = np.concatenate(final_idx)  # [M, 2] (t, b)
+    sizes = {f.get("num_agents") for f in fragments}
+    if len(sizes) > 1:
+        raise ValueError(f"fragments of different swarm sizes {sorted(sizes, key=str)} cannot share a batch")
+    out["num_agents"] = sizes.pop()  # N (None from fragments that do not say)
     return out
+
+
+def swarm_members(cols: torch.Tensor, num_agents: int) -> torch.Tensor:
+    """Columns of every drone in the swarm of each column: ``[b] -> [b, N]`` (swarm e = columns e*N .. e*N+N-1)."""
+    first = torch.div(cols, num_agents, rounding_mode="floor") * num_agents
+    return first[:, None] + torch.arange(num_agents, device=cols.device)
 
 
 class Learner:
@@ -54,6 +64,7 @@ class Learner:
         self.num_updates = 0  # optimizer steps taken
         self.skipped_updates = 0  # non-finite loss or gradient
         self.consecutive_skips = 0  # skipped updates since the last good one (the trainer stops a run at a limit)
+        self._num_agents = None  # drones per swarm of the batch in training (a central critic needs it)
 
     # ------------------------------------------------------------------ weights
     def cpu_weights(self) -> Tuple[int, Dict[str, torch.Tensor]]:
@@ -106,6 +117,9 @@ class Learner:
 
     def _to_tensors(self, fragments: List[Dict[str, Any]]):
         batch = stack_fragments(fragments)
+        self._num_agents = batch.pop("num_agents")
+        if getattr(self.model, "central", False) and self._num_agents is None:
+            raise ValueError("model.critic=central needs fragments that name their swarm size (num_agents)")
         t = {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}
         lag = self.version - t["policy_version"]  # [T, B] learner version - behaviour version
         valid = lag <= self.algo.max_policy_lag  # [T, B]
@@ -127,12 +141,16 @@ class Learner:
         T, b, D = obs.shape
         actions = t["actions"][:, cols]  # [T, b, A]
         old_logp = t["log_probs"][:, cols]  # [T, b]
+        # a central critic sees each drone's whole swarm, read from the batch's own observations
+        members = swarm_members(cols, self._num_agents) if getattr(self.model, "central", False) else None  # [b, N]
+        swarm = None if members is None else t["obs"][:, members].reshape(T * b, self._num_agents, D)  # [T*b, N, D]
         with autocast(self.precision, self.device):  # bf16 matmuls; the model returns fp32 means and values
-            log_prob, entropy, values = self.model.evaluate(obs.reshape(T * b, D), actions.reshape(T * b, -1))
+            log_prob, entropy, values = self.model.evaluate(obs.reshape(T * b, D), actions.reshape(T * b, -1), swarm)
         log_prob, entropy, values = (x.reshape(T, b) for x in (log_prob, entropy, values))
 
         with torch.no_grad(), autocast(self.precision, self.device):
-            bootstrap = self.model.get_value(t["last_obs"][cols])  # [b]
+            last_swarm = None if members is None else t["last_obs"][members]  # [b, N, D]
+            bootstrap = self.model.get_value(t["last_obs"][cols], last_swarm)  # [b]
             # Truncated steps bootstrap from the value of the true final observation, not the reset one.
             col_pos = torch.full((t["rewards"].shape[1],), -1, dtype=torch.long, device=obs.device)
             col_pos[cols] = torch.arange(b, device=obs.device)
@@ -141,7 +159,8 @@ class Learner:
                 sel = col_pos[final_idx[:, 1]] >= 0
                 if sel.any():
                     fi = final_idx[sel]
-                    final_values[fi[:, 0], col_pos[fi[:, 1]]] = self.model.get_value(t["final_obs"][sel])
+                    final_values[fi[:, 0], col_pos[fi[:, 1]]] = self.model.get_value(
+                        t["final_obs"][sel], None if members is None else self._final_swarm(t, fi))
             discounts = algo.gamma * (~t["terminated"][:, cols]).float()  # [T, b]
             rewards, discounts = fold_truncation_bootstrap(
                 t["rewards"][:, cols], discounts, t["truncated"][:, cols], final_values, algo.gamma)
@@ -155,6 +174,18 @@ class Learner:
             clip_ratio=algo.ppo_clip_ratio, value_coeff=algo.value_loss_coeff, entropy_coeff=algo.entropy_coeff,
             old_values=t["values"][:, cols].reshape(-1), value_clip=algo.value_clip,
             normalize_advantages=algo.normalize_advantages)
+
+    def _final_swarm(self, t: Dict[str, torch.Tensor], fi: torch.Tensor) -> torch.Tensor:
+        """The true final observations of every drone in the swarm of each truncated step ``fi`` [m, 2] (t, col):
+        ``[m, N, D]``. A swarm's episode ends for all its drones at once, so each member has a final row."""
+        final_idx = t["final_idx"]
+        row = torch.full(t["rewards"].shape, -1, dtype=torch.long, device=final_idx.device)  # [T, B]
+        row[final_idx[:, 0], final_idx[:, 1]] = torch.arange(final_idx.shape[0], device=final_idx.device)
+        rows = row[fi[:, :1], swarm_members(fi[:, 1], self._num_agents)]  # [m, N]
+        if (rows < 0).any():
+            raise ValueError("a truncated step whose swarm mates have no final observation: fragments must hold "
+                             "whole swarms")
+        return t["final_obs"][rows]
 
     def _minibatch_step(self, t: Dict[str, torch.Tensor], cols: torch.Tensor, valid: torch.Tensor,
                         final_idx: torch.Tensor):

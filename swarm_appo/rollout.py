@@ -17,6 +17,8 @@ Fragment layout (time-major, B = E * N drone trajectories, T = ``algo.rollout``)
     final_idx      int64   [M, 2]      ... at (t, b) (sparse: truncation is rare)
     last_obs       float32 [B, D]      observation after step T-1 (bootstrap for the fragment tail)
     policy_version int64   [T]         version of the weights that acted at step t
+    num_agents     int                 drones per swarm N: columns e*N .. e*N+N-1 are swarm e (a central
+                                       critic reads each drone's swarm from the fragment's own observations)
     episode_stats  list[dict]          swarm episodes that ended inside this fragment
     worker_id, env_time_s, inference_time_s, num_agent_steps
 """
@@ -29,6 +31,7 @@ from typing import Any, Dict, Optional, Tuple
 import numpy as np
 import torch
 
+from encoders import swarm_observations
 from quad_env import EnvConfig, VecQuadEnv
 from swarm_appo.precision import autocast, resolve_precision
 
@@ -114,6 +117,7 @@ class RolloutWorker:
             final_idx=np.concatenate(final_idx).astype(np.int64) if final_idx else np.zeros((0, 2), np.int64),
             last_obs=self.obs.copy(),
             policy_version=np.full(T, self.policy_version, np.int64),
+            num_agents=self.env.num_agents,
             collision_scale=self.env.collision_scale,  # the training schedule's value it was collected with
             episode_stats=episode_stats,
             worker_id=self.worker_id,
@@ -124,8 +128,10 @@ class RolloutWorker:
 
     def _sample(self, obs: torch.Tensor) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         # the critic runs only when behaviour values are stored (value clipping): about half the inference cost
+        swarm = swarm_observations(obs, self.env.num_agents) if self.store_values and self.model.central else None
         with autocast(self.precision, obs.device):  # the model returns fp32 means and values either way
-            actions, log_probs, values = self.model.act(obs, generator=self.generator, with_value=self.store_values)
+            actions, log_probs, values = self.model.act(obs, generator=self.generator, with_value=self.store_values,
+                                                        swarm_obs=swarm)
         return actions.numpy(), log_probs.numpy(), values.numpy()
 
     def collect_with_weights(self, weights: Optional[Tuple]) -> Dict[str, Any]:
