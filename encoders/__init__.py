@@ -5,9 +5,9 @@ actor-critic.
     enc = make_encoder("deepsets", layout, symmetry="yaw", size="small")
     model = ActorCritic(layout, encoder="deepsets")
 """
-from .actor_critic import CRITICS, ActorCritic, swarm_observations
+from .actor_critic import CORES, CRITICS, ActorCritic, swarm_observations
 from .frames import SYMMETRIES
 from .registry import ALIASES, ARCHITECTURES, ENCODERS, SIZES, encoder_options, make_encoder, resolve
 
-__all__ = ["ActorCritic", "CRITICS", "ALIASES", "ARCHITECTURES", "ENCODERS", "SIZES", "SYMMETRIES", "encoder_options",
-           "make_encoder", "resolve", "swarm_observations"]
+__all__ = ["ActorCritic", "CORES", "CRITICS", "ALIASES", "ARCHITECTURES", "ENCODERS", "SIZES", "SYMMETRIES",
+           "encoder_options", "make_encoder", "resolve", "swarm_observations"]

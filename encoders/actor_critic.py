@@ -15,7 +15,7 @@ sees it: acting, evaluation and export need the drone's own observation only, fo
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import List, Optional, Tuple
 
 import torch
 from torch import nn
@@ -32,6 +32,25 @@ HEAD_HIDDEN = {"paper": 256, "small": 64}  # head width per model.size preset
 
 HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 CRITICS = ("local", "central")  # model.critic: the agent's observation only | + the swarm's global state
+CORES = ("none", "gru", "lstm")  # model.core: feed-forward | a recurrent cell between encoder and head
+
+
+class RecurrentCore(nn.Module):
+    """One GRU or LSTM cell with a flat state: ``(x [B, I], state [B, S]) -> (y [B, H], state' [B, S])``,
+    S = H for a GRU and 2H for an LSTM (h | c). The state keeps its own dtype (fp32 under bf16 autocast)."""
+
+    def __init__(self, kind: str, in_dim: int, size: int):
+        super().__init__()
+        self.kind, self.size = kind, size
+        self.cell = nn.GRUCell(in_dim, size) if kind == "gru" else nn.LSTMCell(in_dim, size)
+        self.state_size = size if kind == "gru" else 2 * size
+
+    def forward(self, x: torch.Tensor, state: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        if self.kind == "gru":
+            h = self.cell(x, state.to(x.dtype))
+            return h, h.to(state.dtype)
+        h, c = self.cell(x, (state[:, :self.size].to(x.dtype), state[:, self.size:].to(x.dtype)))
+        return h, torch.cat([h, c], dim=-1).to(state.dtype)
 
 
 def swarm_observations(obs: torch.Tensor, num_agents: int) -> torch.Tensor:
@@ -75,6 +94,11 @@ class ActorCritic(nn.Module):
             (PPO practice: 0.01) start the policy at a near-constant mean action ``init_action_mean``.
         critic: "local" (the critic sees what the actor sees) or "central" (plus the swarm's global state,
             passed as ``swarm_obs [B, N, D]`` to every method that computes values; see the module docstring).
+        core: "none" (feed-forward, the paper), "gru" or "lstm": a recurrent cell between encoder and head, for
+            the actor and (with its own cell unless ``share_encoder``) the critic. Its state ``[B, state_size]``
+            (actor | critic; zeros at an episode start) goes in and out of ``act``; the learner unrolls whole
+            trajectories with ``evaluate_sequence``.
+        core_size: hidden size of each cell; None = the heads' width (paper 256, small 64).
     """
 
     def __init__(self, layout: ObsLayout, encoder: str = "deepsets", encoder_kwargs: Optional[dict] = None,
@@ -82,7 +106,8 @@ class ActorCritic(nn.Module):
                  head_activation: str = "tanh", init_log_std: float = 0.0, normalize_obs: bool = False,
                  init_action_mean: float = 0.0, init_actor_out_scale: float = 1.0,
                  body_frame_obs: Optional[bool] = False,
-                 symmetry: Optional[str] = None, size: str = "paper", critic: str = "local"):
+                 symmetry: Optional[str] = None, size: str = "paper", critic: str = "local",
+                 core: str = "none", core_size: Optional[int] = None):
         super().__init__()
         encoder_kwargs = dict(encoder_kwargs or {})
         _, symmetry = resolve(encoder, symmetry)
@@ -96,6 +121,10 @@ class ActorCritic(nn.Module):
             raise ValueError(f"unknown critic {critic!r}; valid: {list(CRITICS)}")
         if size not in HEAD_HIDDEN:
             raise ValueError(f"unknown size preset {size!r}; valid: {list(HEAD_HIDDEN)}")
+        if core not in CORES:
+            raise ValueError(f"unknown core {core!r}; valid: {list(CORES)}")
+        if core_size is not None and core_size < 1:
+            raise ValueError(f"core_size must be >= 1 or None, got {core_size}")
         head_hidden = HEAD_HIDDEN[size] if head_hidden is None else head_hidden
         self.layout = layout
         self.symmetry = symmetry
@@ -104,7 +133,7 @@ class ActorCritic(nn.Module):
                            action_dim=action_dim, head_hidden=head_hidden, head_activation=head_activation,
                            init_log_std=init_log_std, normalize_obs=normalize_obs,
                            init_action_mean=init_action_mean, init_actor_out_scale=init_actor_out_scale,
-                           body_frame_obs=body_frame_obs, critic=critic)
+                           body_frame_obs=body_frame_obs, critic=critic, core=core, core_size=core_size)
         self.share_encoder = share_encoder
         self.action_dim = action_dim
         self.obs_norm = FieldScaleNorm(layout) if normalize_obs else None
@@ -117,6 +146,15 @@ class ActorCritic(nn.Module):
         state_width = head_hidden or HEAD_HIDDEN[size]
         self.swarm_state = xavier_init_(mlp([layout.self_dim, state_width, state_width], head_activation)) \
             if self.central else None
+        # recurrent core: encoder -> cell -> head; the critic has its own cell unless it shares the encoder
+        self.actor_core = self.critic_core = None
+        if core != "none":
+            size_h = core_size or head_hidden or HEAD_HIDDEN[size]
+            self.actor_core = RecurrentCore(core, out_dim, size_h)
+            self.critic_core = None if share_encoder else RecurrentCore(core, out_dim, size_h)
+            out_dim = size_h
+        self.state_sizes = tuple(c.state_size if c is not None else 0 for c in (self.actor_core, self.critic_core))
+        self.state_size = sum(self.state_sizes)  # 0: feed-forward
         critic_in = out_dim + (state_width if self.central else 0)
         hidden = [head_hidden] if head_hidden else []  # 0: linear heads (Sample Factory's, for like-for-like runs)
         self.actor_head = xavier_init_(mlp([out_dim, *hidden, action_dim], head_activation, last_act=False))
@@ -146,7 +184,8 @@ class ActorCritic(nn.Module):
         return obs if self.obs_norm is None else self.obs_norm(obs)
 
     def _swarm_features(self, features: torch.Tensor, swarm_obs: Optional[torch.Tensor]) -> torch.Tensor:
-        """The critic's input: ``features`` [B, F], with a central critic followed by the swarm's pooled state."""
+        """The critic head's input: ``features`` [B, F], with a central critic followed by the swarm's pooled
+        state."""
         if not self.central:
             return features
         if swarm_obs is None:
@@ -157,51 +196,127 @@ class ActorCritic(nn.Module):
         pooled = self.swarm_state(own).reshape(B, N, -1).mean(1)  # [B, W]: invariant to the drones' order
         return torch.cat([features, pooled.to(features.dtype)], dim=-1)
 
-    def _features(self, obs: torch.Tensor, swarm_obs: Optional[torch.Tensor] = None):
-        obs = self._normalize(obs)
-        actor = self.actor_encoder(obs)  # [B, out_dim]
-        critic = actor if self.critic_encoder is None else self.critic_encoder(obs)
-        return actor, self._swarm_features(critic, swarm_obs)
+    def initial_state(self, batch: int, device=None) -> torch.Tensor:
+        """The core state at an episode start: zeros ``[batch, state_size]`` (``[batch, 0]`` feed-forward)."""
+        return torch.zeros(batch, self.state_size, dtype=self.log_std.dtype, device=device)
 
-    def get_value(self, obs: torch.Tensor, swarm_obs: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """V(obs): [B] (a central critic also needs ``swarm_obs`` [B, N, D])."""
-        encoder = self.actor_encoder if self.critic_encoder is None else self.critic_encoder
-        features = self._swarm_features(encoder(self._normalize(obs)), swarm_obs)
-        return self.critic_head(features).squeeze(-1).to(self.log_std.dtype)
+    def _check_state(self, state: Optional[torch.Tensor], batch: int) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``state`` [B, S] split into (actor, critic) parts; a feed-forward model takes None."""
+        if state is None:
+            if self.state_size:
+                raise ValueError(f"core={self.config['core']!r} needs the core state [B, {self.state_size}] "
+                                 f"(model.initial_state(B) at an episode start)")
+            state = self.log_std.new_zeros(batch, 0)
+        elif state.shape != (batch, self.state_size):
+            raise ValueError(f"core state has shape {tuple(state.shape)}, expected ({batch}, {self.state_size})")
+        return state[:, :self.state_sizes[0]], state[:, self.state_sizes[0]:]
 
-    def policy(self, obs: torch.Tensor):
-        """``(mean [B, A], log_std [A])`` without the critic: what acting needs."""
-        return self.actor_head(self.actor_encoder(self._normalize(obs))).to(self.log_std.dtype), self.log_std
+    def _step(self, obs: torch.Tensor, state: Optional[torch.Tensor], swarm_obs: Optional[torch.Tensor],
+              actor: bool = True, critic: bool = True):
+        """One control step: ``(mean [B, A] or None, value [B] or None, state' [B, S])``. A recurrent critic
+        cell always runs: its state must advance whether or not the value is wanted."""
+        a_state, c_state = self._check_state(state, obs.shape[0])
+        x = self._normalize(obs)
+        dtype = self.log_std.dtype
+        shared = self.critic_encoder is None
+        mean = value = None
+        if actor or (critic and shared) or self.actor_core is not None:
+            a = self.actor_encoder(x)  # [B, out]
+            if self.actor_core is not None:
+                a, a_state = self.actor_core(a, a_state)
+            if actor:
+                mean = self.actor_head(a).to(dtype)
+        if critic or self.critic_core is not None:
+            c = a if shared else self.critic_encoder(x)
+            if self.critic_core is not None:
+                c, c_state = self.critic_core(c, c_state)
+            if critic:
+                value = self.critic_head(self._swarm_features(c, swarm_obs)).squeeze(-1).to(dtype)
+        return mean, value, torch.cat([a_state, c_state], dim=-1)
 
-    def forward(self, obs: torch.Tensor, swarm_obs: Optional[torch.Tensor] = None):
+    def get_value(self, obs: torch.Tensor, swarm_obs: Optional[torch.Tensor] = None,
+                  state: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """V(obs): [B] (a central critic also needs ``swarm_obs`` [B, N, D], a recurrent one the core
+        ``state`` before this step)."""
+        return self._step(obs, state, swarm_obs, actor=False)[1]
+
+    def policy(self, obs: torch.Tensor, state: Optional[torch.Tensor] = None):
+        """``(mean [B, A], log_std [A])`` without the critic: what acting needs (feed-forward models)."""
+        return self._step(obs, state, None, critic=False)[0], self.log_std
+
+    def forward(self, obs: torch.Tensor, swarm_obs: Optional[torch.Tensor] = None,
+                state: Optional[torch.Tensor] = None):
         """``(mean [B, A], log_std [A], value [B])`` in the parameters' dtype: under bf16 autocast
         (``runner.precision``) the log-probs, ratios and value targets computed from them stay float32.
         ``swarm_obs`` [B, N, D]: the swarm of each drone, for a central critic (ignored by a local one)."""
-        actor, critic = self._features(obs, swarm_obs)
-        dtype = self.log_std.dtype
-        return self.actor_head(actor).to(dtype), self.log_std, self.critic_head(critic).squeeze(-1).to(dtype)
+        mean, value, _ = self._step(obs, state, swarm_obs)
+        return mean, self.log_std, value
 
     # ------------------------------------------------------------------ RL interface
     def act(self, obs: torch.Tensor, deterministic: bool = False, generator: Optional[torch.Generator] = None,
-            with_value: bool = True, swarm_obs: Optional[torch.Tensor] = None):
-        """Sample (or take the mean of) the unclipped Gaussian: ``(actions [B, A], log_prob [B], value [B])``.
+            with_value: bool = True, swarm_obs: Optional[torch.Tensor] = None, state: Optional[torch.Tensor] = None):
+        """Sample (or take the mean of) the unclipped Gaussian: ``(actions [B, A], log_prob [B], value [B])``,
+        and with ``state`` (the core state before this step, ``[B, state_size]``) a fourth output, the state
+        after it.
 
         The one definition of acting, for rollout workers (sampling), evaluation (the mean, or a seeded sample)
-        and tests. ``with_value=False`` skips the critic (about half the cost of acting) and returns zeros for
-        the value. The noise is ``torch.randn(mean.shape, generator=generator)``: one draw per action entry."""
-        if with_value:
-            mean, log_std, value = self(obs, swarm_obs)
-        else:
-            (mean, log_std), value = self.policy(obs), obs.new_zeros(obs.shape[0], dtype=self.log_std.dtype)
+        and tests. ``with_value=False`` skips the critic (about half the cost of acting; a recurrent critic cell
+        still runs) and returns zeros for the value. The noise is ``torch.randn(mean.shape, generator=generator)``:
+        one draw per action entry."""
+        mean, value, new_state = self._step(obs, state, swarm_obs, critic=with_value)
+        if value is None:
+            value = obs.new_zeros(obs.shape[0], dtype=self.log_std.dtype)
+        log_std = self.log_std
         if deterministic:
             actions = mean
         else:
             noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
             actions = mean + noise * torch.exp(log_std)
-        return actions, gaussian_log_prob(mean, log_std, actions), value
+        out = (actions, gaussian_log_prob(mean, log_std, actions), value)
+        return out if state is None else (*out, new_state)
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, swarm_obs: Optional[torch.Tensor] = None):
-        """``(log_prob [B], entropy [B], value [B])`` of given actions."""
+        """``(log_prob [B], entropy [B], value [B])`` of given actions (feed-forward models)."""
         mean, log_std, value = self(obs, swarm_obs)
         entropy = (0.5 + HALF_LOG_2PI + log_std).sum().expand(mean.shape[0])
         return gaussian_log_prob(mean, log_std, actions), entropy, value
+
+    def evaluate_sequence(self, obs: torch.Tensor, actions: torch.Tensor, state: Optional[torch.Tensor] = None,
+                          starts: Optional[torch.Tensor] = None, swarm_obs: Optional[torch.Tensor] = None):
+        """The learner's view of whole trajectories: ``obs [T, b, D]``, ``actions [T, b, A]``; for a recurrent
+        model also the core ``state [b, S]`` before step 0 and ``starts [T, b]`` (True where an episode begins:
+        the state is reset to zeros before that step); ``swarm_obs [T, b, N, D]`` for a central critic.
+
+        Returns ``(log_prob [T, b], entropy [T, b], value [T, b], states)``, ``states [T, b, S]`` the core state
+        after each step, before any reset (None feed-forward): the bootstrap of a truncated step reads its true
+        final observation with it. The encoders run once on all T*b rows; only the cells step through time."""
+        T, b, D = obs.shape
+        swarm = None if swarm_obs is None else swarm_obs.reshape(T * b, *swarm_obs.shape[2:])
+        if not self.state_size:
+            log_prob, entropy, value = self.evaluate(obs.reshape(T * b, D), actions.reshape(T * b, -1), swarm)
+            return log_prob.reshape(T, b), entropy.reshape(T, b), value.reshape(T, b), None
+        a_state, c_state = self._check_state(state, b)
+        x = self._normalize(obs.reshape(T * b, D))
+        a_in = self.actor_encoder(x).reshape(T, b, -1)
+        c_in = None if self.critic_encoder is None else self.critic_encoder(x).reshape(T, b, -1)
+        keep = torch.ones(T, b, 1, dtype=torch.bool, device=obs.device) if starts is None else ~starts[..., None]
+        a_out: List[torch.Tensor] = []
+        c_out: List[torch.Tensor] = []
+        states: List[torch.Tensor] = []
+        for t in range(T):
+            a_state = torch.where(keep[t], a_state, torch.zeros_like(a_state))
+            c_state = torch.where(keep[t], c_state, torch.zeros_like(c_state))
+            y, a_state = self.actor_core(a_in[t], a_state)
+            a_out.append(y)
+            if self.critic_core is not None:
+                y, c_state = self.critic_core(c_in[t], c_state)
+                c_out.append(y)
+            states.append(torch.cat([a_state, c_state], dim=-1))
+        a = torch.stack(a_out).reshape(T * b, -1)
+        c = a if self.critic_core is None else torch.stack(c_out).reshape(T * b, -1)
+        dtype = self.log_std.dtype
+        mean = self.actor_head(a).to(dtype)
+        value = self.critic_head(self._swarm_features(c, swarm)).squeeze(-1).to(dtype)
+        log_prob = gaussian_log_prob(mean, self.log_std, actions.reshape(T * b, -1))
+        entropy = (0.5 + HALF_LOG_2PI + self.log_std).sum().expand(T * b)
+        return log_prob.reshape(T, b), entropy.reshape(T, b), value.reshape(T, b), torch.stack(states)

@@ -89,6 +89,13 @@ class ModelConfig:
     also the swarm's global state, every drone's own-state block: position relative to its goal, velocity,
     rotation, body rates, through a DeepSets over the drones). The actor stays decentralised either way; the
     global state is read from the fragment's observations (no extra simulation or data)."""
+    core: str = "none"
+    """Recurrent core between encoder and heads (Sample Factory's ``use_rnn``): "none" (feed-forward, the paper),
+    "gru" or "lstm". Actor and critic each get a cell (one shared with ``share_encoder``); rollout workers carry
+    each drone's state across fragments and reset it at episode starts; the learner unrolls whole
+    trajectories from the state stored with each fragment, recomputing the states with the current weights."""
+    core_size: Optional[int] = None
+    """Hidden size of each recurrent cell; null = the heads' width (the size preset's: 256 / 64)."""
 
 
 @dataclass
@@ -605,6 +612,8 @@ def _check_model(cfg: TrainConfig) -> None:
     _check(m.symmetry is None or m.symmetry in encoders.SYMMETRIES, "model.symmetry",
            f"must be one of {list(encoders.SYMMETRIES)} or null (the encoder's own)", m.symmetry)
     _check(m.critic in encoders.CRITICS, "model.critic", f"must be one of {list(encoders.CRITICS)}", m.critic)
+    _check(m.core in encoders.CORES, "model.core", f"must be one of {list(encoders.CORES)}", m.core)
+    _check(m.core_size is None or m.core_size >= 1, "model.core_size", "must be >= 1 or null", m.core_size)
     try:
         _, symmetry = encoders.resolve(m.encoder, m.symmetry)
     except ValueError as e:

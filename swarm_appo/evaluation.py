@@ -65,12 +65,20 @@ def evaluation_env(train_env: EnvConfig, num_agents: Optional[int] = None,
 # ----------------------------------------------------------------------------------------------- policies
 def model_policy(model: torch.nn.Module, deterministic: bool = True,
                  generator: Optional[torch.Generator] = None) -> Policy:
-    """The actor's mean action (or a sample drawn with ``generator``), on CPU; the critic is not run."""
+    """The actor's mean action (or a sample drawn with ``generator``), on CPU; the critic is not run.
+
+    A recurrent policy (``model.core``) carries its core state from call to call, from zeros: one policy flies
+    one batch of episodes from their first step (``fly_episodes``); a batch of another size starts afresh."""
     model = model.to("cpu").eval()
+    state = model.initial_state(0)
 
     @torch.no_grad()
     def act(obs: np.ndarray) -> np.ndarray:
-        actions, _, _ = model.act(torch.from_numpy(obs), deterministic, generator, with_value=False)  # [M, 4]
+        nonlocal state
+        if state.shape[0] != obs.shape[0]:
+            state = model.initial_state(obs.shape[0])
+        actions, _, _, state = model.act(torch.from_numpy(obs), deterministic, generator, with_value=False,
+                                         state=state)  # [M, 4]
         return actions.numpy()
 
     return act

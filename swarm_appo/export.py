@@ -17,6 +17,11 @@ trained policy emits them: the simulator clips them to [-1, 1] (``--clip-actions
 into the model). Before writing ``actor.json`` the export runs each file on random observations of
 another batch size (and on padded neighbour slots) and checks it against the PyTorch actor.
 
+A recurrent policy (``model.core: gru | lstm``) is exported with its core state as an explicit input and
+output: ``(obs [B, D], state [B, S]) -> (actions [B, 4], state_out [B, S])``; the caller feeds zeros at an
+episode start and ``state_out`` at every later step (``actor.json``: ``state``). Only the actor's cell is
+in it (the critic's is not needed to fly).
+
 ONNX needs the ``onnx`` package, its check ``onnxruntime`` (``pip install -e ".[export]"``). It uses
 torch's TorchScript-based exporter (``dynamo=False``): it needs no further package and is several times
 faster than the ``torch.export`` one, which would need ``onnxscript`` plus decompositions of ``cdist``
@@ -84,6 +89,24 @@ class DeterministicActor(nn.Module):
         return actions.clamp(-1.0, 1.0) if self.clip_actions else actions
 
 
+class RecurrentDeterministicActor(DeterministicActor):
+    """``(obs [B, D], state [B, S]) -> (mean action [B, 4], state' [B, S])``: the actor of a recurrent policy,
+    S = its cell's state (``model.state_sizes[0]``)."""
+
+    def __init__(self, model: nn.Module, clip_actions: bool = False):
+        super().__init__(model, clip_actions)
+        self.core = model.actor_core
+
+    def forward(self, obs: torch.Tensor, state: torch.Tensor):
+        if self.body_frame is not None:
+            obs = self.body_frame(obs)
+        if self.obs_norm is not None:
+            obs = self.obs_norm(obs)
+        features, state = self.core(self.encoder(obs), state)
+        actions = self.head(features)  # [B, 4]
+        return (actions.clamp(-1.0, 1.0) if self.clip_actions else actions), state
+
+
 # ----------------------------------------------------------------------------------------------- formats
 @contextlib.contextmanager
 def _quiet_torch():
@@ -97,11 +120,12 @@ def _quiet_torch():
         yield
 
 
-def export_torchscript(actor: nn.Module, example: torch.Tensor, check: torch.Tensor, path: Path) -> Path:
+def export_torchscript(actor: nn.Module, example: tuple, check: tuple, path: Path) -> Path:
     """Trace (the encoders are plain tensor code once the layout is fixed) and check the trace on
-    another batch size, so a shape frozen into the graph would fail here rather than on the robot."""
+    another batch size, so a shape frozen into the graph would fail here rather than on the robot.
+    ``example`` and ``check`` are the inputs: ``(obs,)`` or, recurrent, ``(obs, state)``."""
     with _quiet_torch():
-        traced = torch.jit.trace(actor, (example,), check_inputs=[(check,)])
+        traced = torch.jit.trace(actor, example, check_inputs=[check])
     traced.save(str(path))
     return path
 
@@ -144,29 +168,38 @@ def _onnx_translations():
             torch.onnx.unregister_custom_op_symbolic(name, ONNX_OPSET)
 
 
-def export_onnx(actor: nn.Module, example: torch.Tensor, path: Path) -> Path:
-    """ONNX with a dynamic batch axis, checked by ``onnx.checker``."""
+def export_onnx(actor: nn.Module, example: tuple, path: Path) -> Path:
+    """ONNX with a dynamic batch axis, checked by ``onnx.checker``; inputs ``obs`` (and ``state``), outputs
+    ``actions`` (and ``state_out``)."""
     try:
         import onnx
     except ImportError as e:
         raise ImportError("ONNX export needs the onnx package: pip install -e '.[export]' "
                           "(or pip install onnx onnxruntime)") from e
     with _quiet_torch(), _onnx_translations():
-        torch.onnx.export(actor, (example,), str(path), dynamo=False, input_names=["obs"], output_names=["actions"],
-                          dynamic_axes={"obs": {0: "batch"}, "actions": {0: "batch"}}, opset_version=ONNX_OPSET)
+        inputs, outputs = (["obs", "state"], ["actions", "state_out"]) if len(example) == 2 else (["obs"], ["actions"])
+        torch.onnx.export(actor, example, str(path), dynamo=False, input_names=inputs, output_names=outputs,
+                          dynamic_axes={name: {0: "batch"} for name in inputs + outputs}, opset_version=ONNX_OPSET)
     onnx.checker.check_model(onnx.load(str(path)))
     return path
 
 
-def run_exported(fmt: str, path: Path, obs: np.ndarray) -> np.ndarray:
-    """Actions [B, 4] of an exported file: TorchScript through torch.jit, ONNX through onnxruntime."""
+def run_exported(fmt: str, path: Path, obs: np.ndarray, state: Optional[np.ndarray] = None):
+    """Actions [B, 4] of an exported file (TorchScript through torch.jit, ONNX through onnxruntime); with a
+    recurrent actor's ``state`` [B, S], ``(actions, state_out)``."""
     if fmt == "torchscript":
         with torch.no_grad(), _quiet_torch():
-            return torch.jit.load(str(path))(torch.from_numpy(obs)).numpy()
+            model = torch.jit.load(str(path))
+            if state is None:
+                return model(torch.from_numpy(obs)).numpy()
+            actions, state_out = model(torch.from_numpy(obs), torch.from_numpy(state))
+            return actions.numpy(), state_out.numpy()
     import onnxruntime as ort
 
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    return session.run(["actions"], {"obs": obs})[0]
+    if state is None:
+        return session.run(["actions"], {"obs": obs})[0]
+    return tuple(session.run(["actions", "state_out"], {"obs": obs, "state": state}))
 
 
 # ----------------------------------------------------------------------------------------------- contract
@@ -229,24 +262,41 @@ def export_actor(model: nn.Module, out_dir, env_cfg, formats: Sequence[str] = FO
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     layout = model.layout
-    actor = copy.deepcopy(DeterministicActor(model, clip_actions)).cpu().eval()  # the caller's model untouched
+    S = model.state_sizes[0] if getattr(model, "state_size", 0) else 0  # the actor cell's state; 0 feed-forward
+    wrapper = RecurrentDeterministicActor if S else DeterministicActor
+    actor = copy.deepcopy(wrapper(model, clip_actions)).cpu().eval()  # the caller's model untouched
     rng = np.random.default_rng(seed)
     K = layout.num_neighbors
     example = torch.as_tensor(random_obs(layout, 8, rng, num_real=[K] * 8), dtype=torch.float32)  # [8, D]
     check = random_obs(layout, 13, rng).astype(np.float32)  # [13, D], 0..K real neighbours
+    check_state = rng.normal(size=(13, S)).astype(np.float32) if S else None  # a mid-episode state
     with torch.no_grad():  # checked against the policy itself, not the wrapper: catches a wrapper that drifts
-        expected = copy.deepcopy(model).cpu().eval().policy(torch.from_numpy(check))[0]  # [13, 4]
+        reference = copy.deepcopy(model).cpu().eval()
+        if S:
+            full = torch.zeros(13, reference.state_size)
+            full[:, :S] = torch.from_numpy(check_state)
+            actions, _, _, state_out = reference.act(torch.from_numpy(check), True, with_value=False, state=full)
+            expected = actions
+            expected_state = state_out[:, :S].numpy()
+        else:
+            expected = reference.policy(torch.from_numpy(check))[0]  # [13, 4]
         expected = (expected.clamp(-1.0, 1.0) if clip_actions else expected).numpy()
+    example_in = (example, torch.zeros(8, S)) if S else (example,)
+    check_in = (torch.from_numpy(check), torch.from_numpy(check_state)) if S else (torch.from_numpy(check),)
 
     paths, errors = {}, {}
     for fmt in dict.fromkeys(formats):
         path = out / FILE_NAMES[fmt]
         if fmt == "torchscript":
-            export_torchscript(actor, example, torch.from_numpy(check), path)
+            export_torchscript(actor, example_in, check_in, path)
         else:
-            export_onnx(actor, example, path)
+            export_onnx(actor, example_in, path)
         try:
-            errors[fmt] = float(np.abs(run_exported(fmt, path, check) - expected).max())
+            if S:
+                got, got_state = run_exported(fmt, path, check, check_state)
+                errors[fmt] = float(max(np.abs(got - expected).max(), np.abs(got_state - expected_state).max()))
+            else:
+                errors[fmt] = float(np.abs(run_exported(fmt, path, check) - expected).max())
         except ImportError:
             errors[fmt] = None  # onnxruntime missing: not verified
             warnings.warn(f"{path} was not checked: onnxruntime is not installed", RuntimeWarning)
@@ -260,6 +310,10 @@ def export_actor(model: nn.Module, out_dir, env_cfg, formats: Sequence[str] = FO
         "files": {fmt: p.name for fmt, p in paths.items()},
         "input": {"name": "obs", "dtype": "float32", "shape": ["batch", layout.dim]},
         "output": {"name": "actions", "dtype": "float32", "shape": ["batch", 4]},
+        "state": ({"input": "state", "output": "state_out", "dtype": "float32", "shape": ["batch", S],
+                   "core": model.config["core"],
+                   "usage": "recurrent policy: feed zeros at an episode start, then the previous call's state_out "
+                            "(one row per drone, in the same order as obs)"} if S else None),
         "observation": observation_contract(layout),
         "action": action_contract(env_cfg, clip_actions),
         "policy": {**(provenance or {}), "encoder": model.config["encoder"],

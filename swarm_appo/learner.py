@@ -26,6 +26,8 @@ def stack_fragments(fragments: List[Dict[str, Any]]) -> Dict[str, np.ndarray]:
     for key in ("obs", "actions", "log_probs", "values", "rewards", "terminated", "truncated"):
         out[key] = np.concatenate([f[key] for f in fragments], axis=1)
     out["last_obs"] = np.concatenate([f["last_obs"] for f in fragments], axis=0)  # [B, D]
+    if all("rnn_state" in f for f in fragments):
+        out["rnn_state"] = np.concatenate([f["rnn_state"] for f in fragments], axis=0)  # [B, S]
     versions, final_obs, final_idx, col = [], [], [], 0
     for f in fragments:
         T, B = f["rewards"].shape
@@ -143,15 +145,22 @@ class Learner:
         old_logp = t["log_probs"][:, cols]  # [T, b]
         # a central critic sees each drone's whole swarm, read from the batch's own observations
         members = swarm_members(cols, self._num_agents) if getattr(self.model, "central", False) else None  # [b, N]
-        swarm = None if members is None else t["obs"][:, members].reshape(T * b, self._num_agents, D)  # [T*b, N, D]
+        swarm = None if members is None else t["obs"][:, members]  # [T, b, N, D]
+        # a recurrent core unrolls from the state stored with the fragment, reset where an episode begins
+        recurrent = bool(getattr(self.model, "state_size", 0))
+        done = t["terminated"][:, cols] | t["truncated"][:, cols]  # [T, b]
+        state0 = t["rnn_state"][cols] if recurrent else None  # [b, S]
+        starts = torch.cat([torch.zeros_like(done[:1]), done[:-1]]) if recurrent else None  # [T, b]
         with autocast(self.precision, self.device):  # bf16 matmuls; the model returns fp32 means and values
-            log_prob, entropy, values = self.model.evaluate(obs.reshape(T * b, D), actions.reshape(T * b, -1), swarm)
-        log_prob, entropy, values = (x.reshape(T, b) for x in (log_prob, entropy, values))
+            log_prob, entropy, values, states = self.model.evaluate_sequence(obs, actions, state0, starts, swarm)
 
         with torch.no_grad(), autocast(self.precision, self.device):
             last_swarm = None if members is None else t["last_obs"][members]  # [b, N, D]
-            bootstrap = self.model.get_value(t["last_obs"][cols], last_swarm)  # [b]
-            # Truncated steps bootstrap from the value of the true final observation, not the reset one.
+            # the state that reaches last_obs: after step T-1, reset if that step ended an episode
+            last_state = None if states is None else torch.where(done[-1, :, None], 0.0, states[-1])  # [b, S]
+            bootstrap = self.model.get_value(t["last_obs"][cols], last_swarm, last_state)  # [b]
+            # Truncated steps bootstrap from the value of the true final observation, not the reset one (with
+            # a core: from the state after that step, the one that reached the final observation).
             col_pos = torch.full((t["rewards"].shape[1],), -1, dtype=torch.long, device=obs.device)
             col_pos[cols] = torch.arange(b, device=obs.device)
             final_values = torch.zeros(T, b, device=obs.device)  # [T, b]
@@ -159,8 +168,10 @@ class Learner:
                 sel = col_pos[final_idx[:, 1]] >= 0
                 if sel.any():
                     fi = final_idx[sel]
-                    final_values[fi[:, 0], col_pos[fi[:, 1]]] = self.model.get_value(
-                        t["final_obs"][sel], None if members is None else self._final_swarm(t, fi))
+                    pos = col_pos[fi[:, 1]]
+                    final_values[fi[:, 0], pos] = self.model.get_value(
+                        t["final_obs"][sel], None if members is None else self._final_swarm(t, fi),
+                        None if states is None else states[fi[:, 0], pos])
             discounts = algo.gamma * (~t["terminated"][:, cols]).float()  # [T, b]
             rewards, discounts = fold_truncation_bootstrap(
                 t["rewards"][:, cols], discounts, t["truncated"][:, cols], final_values, algo.gamma)

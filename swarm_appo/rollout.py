@@ -16,6 +16,8 @@ Fragment layout (time-major, B = E * N drone trajectories, T = ``algo.rollout``)
     final_obs      float32 [M, D]      the true last observation of each truncated step ...
     final_idx      int64   [M, 2]      ... at (t, b) (sparse: truncation is rare)
     last_obs       float32 [B, D]      observation after step T-1 (bootstrap for the fragment tail)
+    rnn_state      float32 [B, S]      recurrent core state before step 0 (zeros at an episode start; S = 0
+                                       feed-forward): the learner unrolls each trajectory from it
     policy_version int64   [T]         version of the weights that acted at step t
     num_agents     int                 drones per swarm N: columns e*N .. e*N+N-1 are swarm e (a central
                                        critic reads each drone's swarm from the fragment's own observations)
@@ -59,6 +61,7 @@ class RolloutWorker:
         self.policy_version = -1
         self.obs = self.env.reset().copy()  # [B, D]
         B, D = self.env.num_drones, self.env.obs_dim
+        self.state = self.model.initial_state(B)  # [B, S] core state, carried across fragments
         A = 4
         T = rollout
         # Preallocated fragment buffers; a fragment is a fresh copy of these (it leaves the process).
@@ -88,6 +91,7 @@ class RolloutWorker:
         buf, T = self._buf, self.rollout
         final_obs, final_idx, episode_stats = [], [], []
         env_time = inference_time = 0.0
+        rnn_state = self.state.numpy().astype(np.float32)  # [B, S] before step 0
         for t in range(T):
             t0 = time.perf_counter()
             obs_t = torch.from_numpy(self.obs)
@@ -103,6 +107,7 @@ class RolloutWorker:
             buf["truncated"][t] = trunc
             done = np.flatnonzero(term | trunc)
             if done.size:
+                self.state[torch.from_numpy(done)] = 0.0  # a new episode starts with a fresh core state
                 final_obs.append(self.env.final_obs[done].copy())
                 final_idx.append(np.stack([np.full_like(done, t), done], axis=1))
                 episode_stats.extend(self.env.pop_episode_stats())
@@ -116,6 +121,7 @@ class RolloutWorker:
             final_obs=np.concatenate(final_obs) if final_obs else np.zeros((0, D), np.float32),
             final_idx=np.concatenate(final_idx).astype(np.int64) if final_idx else np.zeros((0, 2), np.int64),
             last_obs=self.obs.copy(),
+            rnn_state=rnn_state,
             policy_version=np.full(T, self.policy_version, np.int64),
             num_agents=self.env.num_agents,
             collision_scale=self.env.collision_scale,  # the training schedule's value it was collected with
@@ -130,8 +136,8 @@ class RolloutWorker:
         # the critic runs only when behaviour values are stored (value clipping): about half the inference cost
         swarm = swarm_observations(obs, self.env.num_agents) if self.store_values and self.model.central else None
         with autocast(self.precision, obs.device):  # the model returns fp32 means and values either way
-            actions, log_probs, values = self.model.act(obs, generator=self.generator, with_value=self.store_values,
-                                                        swarm_obs=swarm)
+            actions, log_probs, values, self.state = self.model.act(
+                obs, generator=self.generator, with_value=self.store_values, swarm_obs=swarm, state=self.state)
         return actions.numpy(), log_probs.numpy(), values.numpy()
 
     def collect_with_weights(self, weights: Optional[Tuple]) -> Dict[str, Any]:
