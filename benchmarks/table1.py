@@ -6,10 +6,11 @@ then evaluated with ``swarm_appo.evaluate`` (no training aids), as mean +- std o
     python -m benchmarks.table1 --train-scenarios static_same_goal,mix --episodes 50
     python -m benchmarks.table1 --rows deepsets/none --compare runner.precision=fp32,bf16   # one recipe change
 
-A row is ``architecture/symmetry`` (``encoders.ARCHITECTURES`` x ``encoders.SYMMETRIES``); only ``model.encoder``
-and ``model.symmetry`` differ between rows (``--config`` is the recipe, ``--set key=value`` changes it for every
-row; ``--compare KEY=V1,V2`` splits every row into one variant per value). Each training is an ordinary run
-directory ``<out>/runs/<train scenario>/<arch>-<symmetry>[-<key>-<value>]/seed<k>``;
+A row is ``architecture/symmetry`` (``encoders.ARCHITECTURES`` x ``encoders.SYMMETRIES``), or a named baseline of
+``PRESETS`` (``rmappo/none``: the mlp encoder with a GRU core and a central critic); only ``model.encoder`` and
+``model.symmetry`` (and a preset's own model keys) differ between rows (``--config`` is the recipe, ``--set
+key=value`` changes it for every row; ``--compare KEY=V1,V2`` splits every row into one variant per value). Each
+training is an ordinary run directory ``<out>/runs/<train scenario>/<arch>-<symmetry>[-<key>-<value>]/seed<k>``;
 a finished one holds ``done.json`` and is skipped next time, an interrupted one resumes from its last checkpoint
 (one killed before its first checkpoint starts again), and an evaluated one keeps its ``eval_table1/``. So a
 killed experiment resumes where it stopped, and the table fills in row by row. Raising ``--agent-steps`` trains
@@ -44,6 +45,10 @@ CURVES = ((("swarm/success_rate",), "success rate (Suc)"),
           (("swarm/collisions_drone", "swarm/collisions"), "drone collisions / episode (ColD)"),
           (("swarm/dist",), "distance to goal, last 5 s (m)"))
 EVAL_DIR = "eval_table1"
+# named baselines that are more than an encoder: row name -> (architecture, the model keys it sets)
+PRESETS: Dict[str, Tuple[str, Tuple[str, ...]]] = {
+    "rmappo": ("mlp", ("model.core=gru", "model.critic=central")),  # configs/paper/rmappo.yaml's network
+}
 
 
 # ----------------------------------------------------------------------------------------------- plan
@@ -67,9 +72,10 @@ def parse_rows(text: str, compare: Optional[str] = None) -> List[Row]:
     rows = []
     for item in (s.strip() for s in text.split(",") if s.strip()):
         arch, _, symmetry = item.partition("/")
-        if arch not in encoders.ARCHITECTURES or symmetry not in encoders.SYMMETRIES:
+        if arch not in (*encoders.ARCHITECTURES, *PRESETS) or symmetry not in encoders.SYMMETRIES:
             raise ValueError(f"row {item!r} must be architecture/symmetry with architecture in "
-                             f"{list(encoders.ARCHITECTURES)} and symmetry in {list(encoders.SYMMETRIES)}")
+                             f"{list(encoders.ARCHITECTURES) + list(PRESETS)} and symmetry in "
+                             f"{list(encoders.SYMMETRIES)}")
         rows.extend((arch, symmetry, setting) for setting in parse_compare(compare))
     if not rows:
         raise ValueError("--rows names no row")
@@ -97,7 +103,9 @@ def row_config(args, scenario: str, row: Row, seed: int):
     from swarm_appo.config import load_config
 
     rd = run_dir(Path(args.out), scenario, row, seed)
-    overrides = [*args.set, *([row[2]] if row[2] else []), f"model.encoder={row[0]}", f"model.symmetry={row[1]}",
+    encoder, preset = PRESETS.get(row[0], (row[0], ()))
+    overrides = [*args.set, *preset, *([row[2]] if row[2] else []), f"model.encoder={encoder}",
+                 f"model.symmetry={row[1]}",
                  f"env.scenario={scenario}",
                  f"runner.seed={seed}", f"runner.total_agent_steps={args.agent_steps}",
                  f"runner.run_dir={rd.parent}", f"runner.name={rd.name}", "runner.final_eval_episodes=0",

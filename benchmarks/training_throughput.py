@@ -27,6 +27,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from benchmarks.common import ROOT, append_results, commit, gemm_rate, load_average, machine
+from encoders import swarm_observations
 from encoders.testing import random_obs
 from swarm_appo.config import load_config
 from swarm_appo.model import model_factory
@@ -39,13 +40,17 @@ def flops_per_agent_step(cfg, batch: int = 512) -> dict:
     layout = cfg.env.obs_layout()
     model = model_factory(layout, cfg.model)()
     obs = torch.as_tensor(random_obs(layout, batch, np.random.default_rng(0)), dtype=torch.float32)
+    # a central critic reads each drone's swarm; a recurrent core steps from a state (zeros here)
+    swarm = swarm_observations(obs, cfg.env.num_agents) if model.central else None
+    state = model.initial_state(batch)
     with FlopCounterMode(display=False) as fc:
         with torch.no_grad():  # what a rollout worker runs per step: the actor, plus the critic for value clipping
-            model(obs) if cfg.algo.value_clip is not None else model.policy(obs)
+            model.act(obs, with_value=cfg.algo.value_clip is not None, swarm_obs=swarm, state=state)
     inference = fc.get_total_flops() / batch
     actions = torch.randn(batch, 4)
     with FlopCounterMode(display=False) as fc:
-        log_prob, entropy, value = model.evaluate(obs, actions)
+        log_prob, entropy, value, _ = model.evaluate_sequence(obs[None], actions[None], state, None,
+                                                              None if swarm is None else swarm[None])
         (log_prob.mean() + entropy.mean() + value.pow(2).mean()).backward()
     train_epoch = fc.get_total_flops() / batch
     return {"inference": inference, "train_epoch": train_epoch,

@@ -236,8 +236,11 @@ def load_policy_specs(paths: Sequence[str]) -> List[PolicySpec]:
 
 
 def _model_label(model) -> str:
-    """``encoder``, or ``encoder/symmetry`` when a symmetry was set explicitly (deepsets/se3)."""
-    return model.encoder if model.symmetry is None else f"{model.encoder}/{model.symmetry}"
+    """``encoder``, or ``encoder/symmetry`` when a symmetry was set explicitly (deepsets/se3), followed by a
+    recurrent core and a central critic when there are (mlp/none+gru+central: the rMAPPO row)."""
+    label = model.encoder if model.symmetry is None else f"{model.encoder}/{model.symmetry}"
+    extras = [getattr(model, "core", "none"), "central" if getattr(model, "critic", "local") == "central" else "none"]
+    return label + "".join(f"+{x}" for x in extras if x != "none")
 
 
 def random_spec(env: EnvConfig) -> PolicySpec:

@@ -83,6 +83,18 @@ def test_compare_trains_every_row_once_per_value(tmp_path, one_thread):
     assert "compared: runner.precision=fp32,bf16" in table
 
 
+def test_the_papers_other_baselines_are_rows(tmp_path, one_thread):
+    """rMAPPO (a preset: mlp + GRU core + central critic) and InfoMARL (an encoder) train like every other row."""
+    assert run(tmp_path, "--rows", "rmappo/none,infomarl/none", "--seeds", "0") == 0
+    runs = tmp_path / "exp" / "runs" / "static_same_goal"
+    rmappo = yaml.safe_load((runs / "rmappo-none" / "seed0" / "config.yaml").read_text())["model"]
+    assert (rmappo["encoder"], rmappo["core"], rmappo["critic"]) == ("mlp", "gru", "central")
+    infomarl = yaml.safe_load((runs / "infomarl-none" / "seed0" / "config.yaml").read_text())["model"]
+    assert (infomarl["encoder"], infomarl["core"], infomarl["critic"]) == ("infomarl", "none", "local")
+    table = (tmp_path / "exp" / "table1.md").read_text()
+    assert "| rmappo/none | 1 |" in table and "| infomarl/none | 1 |" in table
+
+
 @pytest.mark.parametrize("bad", ["runner.precision", "runner.precision=bf16", "=a,b"])
 def test_compare_needs_a_key_and_two_values(bad):
     with pytest.raises(ValueError, match="KEY=V1,V2"):

@@ -260,6 +260,18 @@ def test_paper_row_configs_are_the_paper_config_with_two_keys(row, encoder, symm
     assert {k for k in d["model"] if d["model"][k] != paper["model"][k]} <= {"encoder", "symmetry"}
 
 
+def test_rmappo_row_is_the_paper_config_with_rmappos_network():
+    from swarm_appo.config import config_to_dict
+    paper = config_to_dict(load_config("configs/paper.yaml"))
+    cfg = load_config("configs/paper/rmappo.yaml")
+    m = cfg.model
+    assert (m.encoder, m.symmetry, m.size, m.core, m.critic) == ("mlp", "none", "small", "gru", "central")
+    d = config_to_dict(cfg)
+    assert d["env"] == paper["env"] and d["algo"] == paper["algo"]
+    assert {k for k in d["model"] if d["model"][k] != paper["model"][k]} == {"encoder", "symmetry", "size", "core",
+                                                                              "critic"}
+
+
 def test_base_config_errors_name_the_file(tmp_path):
     (tmp_path / "a.yaml").write_text("base: b.yaml\n")
     (tmp_path / "b.yaml").write_text("base: a.yaml\n")

@@ -12,7 +12,8 @@ import torch
 from encoders import ActorCritic
 from quad_env import EnvConfig
 from swarm_appo.config import AlgoConfig, ConfigError, load_config
-from swarm_appo.evaluation import evaluation_env, load_checkpoint_policy, model_policy, run_episodes
+from swarm_appo.evaluation import (evaluation_env, load_checkpoint_policy, load_policy_specs, model_policy,
+                                   run_episodes)
 from swarm_appo.export import export_actor, run_exported
 from swarm_appo.learner import Learner, stack_fragments
 from swarm_appo.model import model_factory
@@ -168,6 +169,8 @@ def test_recurrent_run_resumes_evaluates_at_another_n_and_exports_with_its_state
                     resume_dir=str(first.run_dir), progress=False)
     assert resumed.policy_version > first.policy_version
     loaded = load_checkpoint_policy(str(first.run_dir))
+    spec, = load_policy_specs([str(first.run_dir)])
+    assert spec.label == "r (deepsets+gru+central)"  # the evaluation tables name the core and the critic
     stats = run_episodes(evaluation_env(loaded.cfg.env, num_agents=3), model_policy(loaded.model), 2, seed=0)
     assert len(stats) == 2 and all(np.isfinite(s["return"]) for s in stats)
 
