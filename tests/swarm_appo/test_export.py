@@ -132,3 +132,25 @@ def test_export_of_a_truncated_checkpoint_is_one_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "broken.pt" in err and "truncated" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("core", ["gru", "lstm"])
+def test_recurrent_actor_exports_with_its_state_in_and_out(tmp_path, core):
+    """TorchScript and ONNX take (obs, state) and return (actions, state_out); three steps of feeding state_out
+    back (from zeros, as at an episode start) reproduce the policy's own recurrence, and the state matters."""
+    model = tiny_model("deepsets", core=core, core_size=8)
+    paths = export.export_actor(model, tmp_path, EnvConfig(num_neighbors=K))
+    sidecar = json.loads(paths["sidecar"].read_text())
+    S = model.state_sizes[0]
+    assert S == (8 if core == "gru" else 16) and sidecar["state"]["shape"] == ["batch", S]
+    obs = random_obs(ObsLayout(K, "full"), 3 * 5, np.random.default_rng(1)).astype(np.float32).reshape(3, 5, -1)
+    for fmt in ("torchscript", "onnx"):
+        state, ref_state = np.zeros((5, S), np.float32), model.initial_state(5)
+        for k in range(3):
+            actions, state = export.run_exported(fmt, paths[fmt], obs[k], state)
+            with torch.no_grad():
+                ref, _, _, ref_state = model.act(torch.from_numpy(obs[k]), True, with_value=False, state=ref_state)
+            np.testing.assert_allclose(actions, ref.numpy(), atol=1e-5)
+            np.testing.assert_allclose(state, ref_state[:, :S].numpy(), atol=1e-5)
+        fresh, _ = export.run_exported(fmt, paths[fmt], obs[2], np.zeros((5, S), np.float32))
+        assert np.abs(fresh - actions).max() > 1e-4  # the same observation from a zero state acts differently
