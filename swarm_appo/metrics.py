@@ -93,6 +93,8 @@ METRICS: Dict[str, str] = {
     "perf/policy_version": "learner policy version (bumped once per learner iteration)",
     "perf/num_updates": "optimizer steps taken",
     "perf/worker_restarts": "rollout workers replaced after dying (cumulative)",
+    "perf/startup_s": "first record of a process only: seconds from the process start to the first fragment in the "
+                      "learner (imports, config, kernel compilation, Ray and worker start-up, one rollout)",
     # system/: resources of the learner process (system_metrics)
     "system/rss_mb": "resident memory of the learner process (MiB)",
     "system/max_rss_mb": "peak resident memory of the learner process (MiB)",
@@ -158,6 +160,18 @@ class LagStats:
 
 
 # ----------------------------------------------------------------------------------------------- system
+def process_age_s() -> Optional[float]:
+    """Seconds since this process started (Linux: /proc), None where that is unknown."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime, in clock ticks
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def system_metrics() -> Dict[str, float]:
     """Memory of this process: ``system/rss_mb`` (current, Linux only) and ``system/max_rss_mb`` (peak)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS

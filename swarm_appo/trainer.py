@@ -33,7 +33,7 @@ from swarm_appo.config import ConfigError, TrainConfig, config_from_dict, config
 from swarm_appo.eval_tables import METRICS as TABLE_METRICS
 from swarm_appo.evaluation import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
-from swarm_appo.metrics import MetricsLogger, system_metrics
+from swarm_appo.metrics import MetricsLogger, process_age_s, system_metrics
 from swarm_appo.model import model_factory
 from swarm_appo.precision import resolve_precision
 from swarm_appo.sampling import RaySampler, SerialSampler, check_reachable, fragment_nbytes, init_ray
@@ -82,6 +82,9 @@ def stopped_by_error(exc: BaseException, run_dir: Path, last_ckpt: Optional[Path
     return TrainingError(f"training stopped by an error in the learner loop ({type(exc).__name__}: {exc}). "
                          f"The run directory {run_dir} is intact; resume it from its last checkpoint "
                          f"({last_ckpt}) with --resume {run_dir}")
+
+
+_STARTUP_LOGGED = False  # perf/startup_s is logged by the first run of a process only
 
 
 @dataclass
@@ -447,6 +450,10 @@ class Trainer:
             "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
             "charts/collision_scale": self.schedule["collision_scale"],
         })
+        global _STARTUP_LOGGED
+        if self.startup_s is not None and self.startup_s >= 0 and not _STARTUP_LOGGED:
+            record["perf/startup_s"] = self.startup_s  # only the process's first run measures a start-up
+            _STARTUP_LOGGED = True
         record.update(fetch_metrics(timers, driver))
         record.update(system_metrics())
         return record
@@ -504,6 +511,7 @@ class Trainer:
         self.t_start = self.t_log = self.t_ckpt = time.perf_counter()
         self.steps_at_log = self.agent_steps
         interrupted = False
+        self.startup_s: Optional[float] = None  # process start -> first fragment (perf/startup_s)
         self.mid_iteration = False  # the learner is between its first update and publishing the new version
         try:
             time_limit = cfg.runner.time_limit_s or float("inf")
@@ -512,6 +520,8 @@ class Trainer:
                 t0 = time.perf_counter()
                 frag = self.sampler.get()  # [T, B] fragment
                 self.timers["wait"] += time.perf_counter() - t0
+                if self.startup_s is None:
+                    self.startup_s = process_age_s() or -1.0  # logged once, with the first record
                 self._count_fragment(frag)
                 episodes.extend(frag["episode_stats"])
                 batch.append(frag)

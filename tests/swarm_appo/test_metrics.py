@@ -179,3 +179,18 @@ def test_read_wandb_history_refuses_other_files(tmp_path):
     (tmp_path / "x.wandb").write_bytes(b"not wandb")
     with pytest.raises(ValueError, match="not a wandb run file"):
         read_wandb_history(tmp_path / "x.wandb")
+
+
+def test_process_age_counts_from_the_process_start():
+    """A child that sleeps 1 s before asking is at least 1 s old, and younger than the parent's wall time around it."""
+    import subprocess
+    import sys
+    import time
+
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", "import time; time.sleep(1.0); "
+                          "from swarm_appo.metrics import process_age_s; print(process_age_s())"],
+                         capture_output=True, text=True, check=True)
+    wall = time.perf_counter() - t0
+    age = float(out.stdout.strip())
+    assert 1.0 <= age <= wall + 0.02, (age, wall)  # /proc counts in clock ticks (10 ms)
