@@ -272,6 +272,17 @@ def test_rmappo_row_is_the_paper_config_with_rmappos_network():
                                                                               "critic"}
 
 
+def test_quality_config_is_the_table1_recipe_with_what_moved_the_quality_goal():
+    from swarm_appo.config import config_to_dict
+    recipe = config_to_dict(load_config("configs/table1/recipe.yaml"))
+    quality = config_to_dict(load_config("configs/table1/quality.yaml"))
+    changed = {f"{section}.{k}" for section in ("env", "model", "algo") for k in quality[section]
+               if quality[section][k] != recipe[section][k]}
+    assert changed == {"env.replay_prob", "model.symmetry", "algo.lr", "algo.batch_size", "algo.num_epochs",
+                       "algo.lr_schedule"}
+    assert (quality["algo"]["lr"], quality["algo"]["batch_size"], quality["algo"]["num_epochs"]) == (1e-4, 4096, 5)
+
+
 def test_base_config_errors_name_the_file(tmp_path):
     (tmp_path / "a.yaml").write_text("base: b.yaml\n")
     (tmp_path / "b.yaml").write_text("base: a.yaml\n")
