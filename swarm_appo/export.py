@@ -79,14 +79,17 @@ class DeterministicActor(nn.Module):
         self.head = model.actor_head
         self.clip_actions = clip_actions
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def prepare(self, obs: torch.Tensor) -> torch.Tensor:
         # The same input preparation as ActorCritic: body frame (optional), then per-field scaling.
         if self.body_frame is not None:
             obs = self.body_frame(obs)
-        if self.obs_norm is not None:
-            obs = self.obs_norm(obs)
-        actions = self.head(self.encoder(obs))  # [B, 4]
+        return obs if self.obs_norm is None else self.obs_norm(obs)
+
+    def finish(self, actions: torch.Tensor) -> torch.Tensor:
         return actions.clamp(-1.0, 1.0) if self.clip_actions else actions
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.finish(self.head(self.encoder(self.prepare(obs))))  # [B, 4]
 
 
 class RecurrentDeterministicActor(DeterministicActor):
@@ -98,13 +101,8 @@ class RecurrentDeterministicActor(DeterministicActor):
         self.core = model.actor_core
 
     def forward(self, obs: torch.Tensor, state: torch.Tensor):
-        if self.body_frame is not None:
-            obs = self.body_frame(obs)
-        if self.obs_norm is not None:
-            obs = self.obs_norm(obs)
-        features, state = self.core(self.encoder(obs), state)
-        actions = self.head(features)  # [B, 4]
-        return (actions.clamp(-1.0, 1.0) if self.clip_actions else actions), state
+        features, state = self.core(self.encoder(self.prepare(obs)), state)
+        return self.finish(self.head(features)), state  # [B, 4], [B, S]
 
 
 # ----------------------------------------------------------------------------------------------- formats

@@ -123,6 +123,10 @@ class Learner:
         if getattr(self.model, "central", False) and self._num_agents is None:
             raise ValueError("model.critic=central needs fragments that name their swarm size (num_agents)")
         t = {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}
+        if getattr(self.model, "central", False):  # row of final_obs per truncated (t, b), once per batch
+            fi = t["final_idx"]
+            t["final_row"] = torch.full(t["rewards"].shape, -1, dtype=torch.long, device=fi.device)  # [T, B]
+            t["final_row"][fi[:, 0], fi[:, 1]] = torch.arange(fi.shape[0], device=fi.device)
         lag = self.version - t["policy_version"]  # [T, B] learner version - behaviour version
         valid = lag <= self.algo.max_policy_lag  # [T, B]
         return t, lag, valid
@@ -189,10 +193,7 @@ class Learner:
     def _final_swarm(self, t: Dict[str, torch.Tensor], fi: torch.Tensor) -> torch.Tensor:
         """The true final observations of every drone in the swarm of each truncated step ``fi`` [m, 2] (t, col):
         ``[m, N, D]``. A swarm's episode ends for all its drones at once, so each member has a final row."""
-        final_idx = t["final_idx"]
-        row = torch.full(t["rewards"].shape, -1, dtype=torch.long, device=final_idx.device)  # [T, B]
-        row[final_idx[:, 0], final_idx[:, 1]] = torch.arange(final_idx.shape[0], device=final_idx.device)
-        rows = row[fi[:, :1], swarm_members(fi[:, 1], self._num_agents)]  # [m, N]
+        rows = t["final_row"][fi[:, :1], swarm_members(fi[:, 1], self._num_agents)]  # [m, N]
         if (rows < 0).any():
             raise ValueError("a truncated step whose swarm mates have no final observation: fragments must hold "
                              "whole swarms")
