@@ -34,7 +34,8 @@ import numpy as np
 
 from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.params import (
-    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
+    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK,
+    F_COLL_REST,
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
@@ -42,7 +43,7 @@ from quad_env.params import (
     I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
     COLL_FORM_PAPER, I_COLL_FORM,
     F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
-    SDF_SPACING,
+    SDF_SPACING, T_ACTION, T_COLLISION, T_FLOOR, T_OMEGA, T_POS, T_PROXIMITY, T_TILT,
 )
 
 from quad_env.rng import normal_from, normal_pair, uniform
@@ -555,6 +556,50 @@ def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
     _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8)
 
 
+@njit(cache=True, inline="always")
+def reward_terms(i, a, dist, z, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, fp, ip, terms):
+    """Drone ``i``'s reward terms (true state, not the noisy observation): written to ``terms[T_<term>, i]``
+    (rows as ``REWARD_TERMS``); returns their sum. ``a``: the drone's index in its swarm (``coll_pen``,
+    ``new_obst``, ``prox``: see ``observe_swarm``); ``dist``: its distance to goal, ``z`` its height;
+    ``nb_d2[:found]``: squared distances to its observed neighbours (the "paper" proximity sum).
+    A new term: its name in ``REWARD_TERMS``, its formula here (and in the sum), its float64 twin in
+    ``quad_env.reference``, its coefficient in ``RewardConfig`` (packed by ``pack_params``)."""
+    dt = fp[F_CTRL_DT]
+    c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
+    c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
+    c_floor, c_tilt, floor_z = fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z]
+    c_obst = fp[F_C_OBST]
+    dp = fp[F_PROX_DIST]
+    dp2 = dp * dp
+    wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
+    u0 = min(max(action[i, 0] * 1.0, -1.0), 1.0)
+    u1 = min(max(action[i, 1] * 1.0, -1.0), 1.0)
+    u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
+    u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
+    r_pos = -c_pos * dist
+    r_coll = -c_coll * coll_pen[a] - c_obst * new_obst[a]
+    if ip[I_COLL_FORM] == COLL_FORM_PAPER:  # proximity over the observed neighbours only
+        near = 0.0
+        for k in range(found):
+            if nb_d2[k] < dp2:
+                near += 1.0 - np.sqrt(nb_d2[k]) / dp
+        r_prox = -c_prox * near
+    else:
+        r_prox = -c_prox * prox[a]
+    r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
+    r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
+    r_floor = -c_floor if z <= floor_z else 0.0
+    r_tilt = -c_tilt * (1.0 - rot[i, 2, 2])
+    terms[T_POS, i] = r_pos
+    terms[T_COLLISION, i] = r_coll
+    terms[T_PROXIMITY, i] = r_prox
+    terms[T_OMEGA, i] = r_omega
+    terms[T_ACTION, i] = r_act
+    terms[T_FLOOR, i] = r_floor
+    terms[T_TILT, i] = r_tilt
+    return r_pos + r_coll + r_prox + r_omega + r_act + r_floor + r_tilt  # (this order: bit-reproducible)
+
+
 @njit(cache=True)
 def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, prox, px, py, pz, d2row, rng, fp, ip,
                   obs, rew, terms, nb_idx, nb_d2, with_reward, obst, obst_index):
@@ -581,16 +626,8 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
     sense2 = fp[F_SENSE_R] * fp[F_SENSE_R]
     sensor_noise = ip[I_SENSOR_NOISE] != 0
     sp, sv, sw = fp[F_NOISE_POS], fp[F_NOISE_VEL], fp[F_NOISE_OMEGA]
-    dt = fp[F_CTRL_DT]
-    c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
-    c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
-    c_floor, c_tilt, floor_z = fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z]
-    c_obst = fp[F_C_OBST]
     use_obst = ip[I_OBSTACLES] != 0
     field_start = mask_start + k_slots
-    prox_nb = ip[I_COLL_FORM] == COLL_FORM_PAPER  # proximity over the observed neighbours only
-    dp = fp[F_PROX_DIST]
-    dp2 = dp * dp
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -683,35 +720,9 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
             for q in range(field_start, ip[I_OBS_DIM]):
                 row[q] = 0.0  # an obstacle layout with obstacles switched off (kernel tests) reads zeros
 
-        # ---- reward terms (true state, not the noisy observation)
         if with_reward:
-            wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
-            u0 = min(max(action[i, 0] * 1.0, -1.0), 1.0)
-            u1 = min(max(action[i, 1] * 1.0, -1.0), 1.0)
-            u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
-            u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
-            r_pos = -c_pos * dist
-            r_coll = -c_coll * coll_pen[a] - c_obst * new_obst[a]
-            if prox_nb:
-                near = 0.0
-                for k in range(found):
-                    if nb_d2[k] < dp2:
-                        near += 1.0 - np.sqrt(nb_d2[k]) / dp
-                r_prox = -c_prox * near
-            else:
-                r_prox = -c_prox * prox[a]
-            r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
-            r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
-            r_floor = -c_floor if zi <= floor_z else 0.0
-            r_tilt = -c_tilt * (1.0 - rot[i, 2, 2])
-            terms[0, i] = r_pos
-            terms[1, i] = r_coll
-            terms[2, i] = r_prox
-            terms[3, i] = r_omega
-            terms[4, i] = r_act
-            terms[5, i] = r_floor
-            terms[6, i] = r_tilt
-            rew[i] = r_pos + r_coll + r_prox + r_omega + r_act + r_floor + r_tilt
+            rew[i] = reward_terms(i, a, dist, zi, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, fp, ip,
+                                  terms)
     return dist_sum / n_agents
 
 
@@ -874,7 +885,7 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst,
     dummy_action = np.zeros((1, 4), np.float64)
     dummy_vec = np.zeros(n_agents, np.float64)
     dummy_rew = np.zeros(1, np.float32)
-    dummy_terms = np.zeros((5, 1), np.float32)
+    dummy_terms = np.zeros((KERNEL_TERMS, 1), np.float32)
     px, py, pz = np.zeros(n_agents), np.zeros(n_agents), np.zeros(n_agents)
     row = np.zeros(n_agents)
     for e in range(selected.shape[0]):

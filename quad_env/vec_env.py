@@ -48,7 +48,9 @@ from quad_env.obstacles import (
     INDEX_SLOTS, OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin, index_obstacles, index_spec,
     lookup_pad,
 )
-from quad_env.params import F_C_COLL, F_C_OBST, F_C_PROX, I_EP_STEPS, REWARD_TERMS, SDF_SPACING, pack_params
+from quad_env.params import (
+    F_C_COLL, F_C_OBST, F_C_PROX, I_EP_STEPS, REWARD_TERMS, SDF_SPACING, T_CRASH, pack_params,
+)
 from quad_env.replay import CollisionReplay
 from quad_env.rng import seed_streams
 from quad_env.scenarios import SPAWN_HALF, SPAWN_MIN_SEP, SPAWN_MIN_Z, make_scenario
@@ -141,7 +143,6 @@ class VecQuadEnv:
         # ---- floor contacts: reward.crash and the respawn_on_floor training aid (off in the paper's setting)
         self._floor_on = cfg.respawn_on_floor or cfg.reward.crash > 0
         self._on_floor = np.zeros(M, bool)  # touching the floor after the previous step
-        self._crash_row = REWARD_TERMS.index("crash")
         self._replay = (CollisionReplay(E, N, self._obst.shape[1:], cfg.control_dt, cfg.replay_buffer_size,
                                         cfg.replay_prob) if cfg.replay_prob > 0 else None)
         self._replayed_name: List[Optional[str]] = [None] * E  # scenario name of a replayed episode
@@ -431,14 +432,14 @@ class VecQuadEnv:
         live = ~np.repeat(self._done | self._diverged, N)  # [M]
         on_floor = self._pos[:, 2] <= self.cfg.physics.floor_z  # [M]
         new = on_floor & ~self._on_floor & live  # [M]
-        crash = self._terms[self._crash_row]  # [M] view
+        crash = self._terms[T_CRASH]  # [M] view
         crash[:] = 0.0
         c = self.cfg.reward.crash
         if c > 0 and new.any():
             crash[new] = -c
             self._rew[new] -= c
             per_swarm = c * new.reshape(E, N).sum(axis=1)  # [E]
-            self._acc[:, ACC_TERMS + self._crash_row] -= per_swarm
+            self._acc[:, ACC_TERMS + T_CRASH] -= per_swarm
             self._acc[:, ACC_RETURN] -= per_swarm
         self._on_floor[:] = on_floor
         if not self.cfg.respawn_on_floor:
