@@ -43,41 +43,67 @@ from quad_env.params import (
     I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
     COLL_FORM_PAPER, I_COLL_FORM,
     F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
-    SDF_SPACING, T_ACTION, T_COLLISION, T_FLOOR, T_OMEGA, T_POS, T_PROXIMITY, T_TILT,
+    REWARD_TERMS, SDF_SPACING, T_ACTION, T_COLLISION, T_FLOOR, T_OMEGA, T_POS, T_PROXIMITY, T_TILT,
 )
 
 from quad_env.rng import normal_from, normal_pair, uniform
 
-# Episode accumulator columns (float64 [E, NUM_ACC]).
-ACC_RETURN = 0  # sum over steps and agents of the reward
-ACC_TERMS = 1  # NUM_TERMS (8) columns: per-term sums, order of params.REWARD_TERMS
-ACC_COLLISIONS = 9  # new drone-drone contacts (pairs)
-ACC_ROOM = 10  # new floor / wall / ceiling contacts (drones)
-ACC_DIST_TAIL = 11  # sum over the last-5-s steps of the mean distance to goal
-ACC_TAIL_STEPS = 12  # number of steps in that sum
-ACC_DIST_FINAL = 13  # mean distance to goal after the latest step
-ACC_DIST_TAIL1 = 14  # sum over the last-1-s steps of the mean distance to goal
-ACC_TAIL1_STEPS = 15
-ACC_DIST_TAIL3 = 16  # sum over the last-3-s steps of the mean distance to goal
-ACC_TAIL3_STEPS = 17
-ACC_COLL_GRACE = 18  # new drone-drone contacts (pairs) after the grace period
-ACC_ROOM_GRACE = 19  # new room contacts (drones) after the grace period
-ACC_OBST = 20  # new drone-obstacle contacts (drones)
-ACC_OBST_GRACE = 21  # new drone-obstacle contacts (drones) after the grace period
-ACC_RESPAWNS = 22  # drones respawned after touching the floor (env.respawn_on_floor)
-NUM_ACC = 23
+# Episode accumulator columns (float64 [E, NUM_ACC]): one name per column, in order; ACC_<NAME> = its index.
+ACC_COLUMNS = (
+    "return",  # sum over steps and agents of the reward
+    *("term_" + t for t in REWARD_TERMS),  # per-term sums, order of REWARD_TERMS
+    "collisions",  # new drone-drone contacts (pairs)
+    "room",  # new floor / wall / ceiling contacts (drones)
+    "dist_tail",  # sum over the last-5-s steps of the mean distance to goal
+    "tail_steps",  # number of steps in that sum
+    "dist_final",  # mean distance to goal after the latest step
+    "dist_tail1",  # sum over the last-1-s steps of the mean distance to goal
+    "tail1_steps",
+    "dist_tail3",  # sum over the last-3-s steps of the mean distance to goal
+    "tail3_steps",
+    "coll_grace",  # new drone-drone contacts (pairs) after the grace period
+    "room_grace",  # new room contacts (drones) after the grace period
+    "obst",  # new drone-obstacle contacts (drones)
+    "obst_grace",  # new drone-obstacle contacts (drones) after the grace period
+    "respawns",  # drones respawned after touching the floor (env.respawn_on_floor)
+)
+ACC_RETURN = ACC_COLUMNS.index("return")
+ACC_TERMS = ACC_COLUMNS.index("term_" + REWARD_TERMS[0])  # column of term t: ACC_TERMS + T_<t>
+ACC_COLLISIONS = ACC_COLUMNS.index("collisions")
+ACC_ROOM = ACC_COLUMNS.index("room")
+ACC_DIST_TAIL = ACC_COLUMNS.index("dist_tail")
+ACC_TAIL_STEPS = ACC_COLUMNS.index("tail_steps")
+ACC_DIST_FINAL = ACC_COLUMNS.index("dist_final")
+ACC_DIST_TAIL1 = ACC_COLUMNS.index("dist_tail1")
+ACC_TAIL1_STEPS = ACC_COLUMNS.index("tail1_steps")
+ACC_DIST_TAIL3 = ACC_COLUMNS.index("dist_tail3")
+ACC_TAIL3_STEPS = ACC_COLUMNS.index("tail3_steps")
+ACC_COLL_GRACE = ACC_COLUMNS.index("coll_grace")
+ACC_ROOM_GRACE = ACC_COLUMNS.index("room_grace")
+ACC_OBST = ACC_COLUMNS.index("obst")
+ACC_OBST_GRACE = ACC_COLUMNS.index("obst_grace")
+ACC_RESPAWNS = ACC_COLUMNS.index("respawns")
+NUM_ACC = len(ACC_COLUMNS)
 
 # Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success, reached and IColR metrics.
 SUCCESS_RADIUS = 0.5  # m: success = within this of the goal at every step of the last SUCCESS_HOLD_S ...
 SUCCESS_HOLD_S = 1.0  # ... seconds of the episode (the whole episode if shorter); see VecQuadEnv.episode_stats
 SUCCESS_WINDOW = 5  # "reached" (the earlier success): the mean distance over this many steps < SUCCESS_RADIUS
-AG_RING = 0  # SUCCESS_WINDOW columns: the latest distances to goal (ring buffer)
-AG_SINCE_JUMP = 5  # steps recorded since the last goal jump (or the episode start)
-AG_REACHED = 6  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
-AG_COLL_GRACE = 7  # new drone-drone contacts of this drone after the grace period
-AG_OBST_GRACE = 8  # new drone-obstacle contacts of this drone after the grace period
-AG_LAST_OUT = 9  # the last control step (episode clock) after which the drone was >= SUCCESS_RADIUS from its goal; 0: never
-NUM_AGENT_ACC = 10
+AG_COLUMNS = (
+    *(f"ring{k}" for k in range(SUCCESS_WINDOW)),  # the latest distances to goal (ring buffer)
+    "since_jump",  # steps recorded since the last goal jump (or the episode start)
+    "reached",  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
+    "coll_grace",  # new drone-drone contacts of this drone after the grace period
+    "obst_grace",  # new drone-obstacle contacts of this drone after the grace period
+    "last_out",  # the last control step (episode clock) after which the drone was >= SUCCESS_RADIUS from its goal
+)  # ("last_out" 0: never)
+AG_RING = AG_COLUMNS.index("ring0")  # SUCCESS_WINDOW columns
+AG_SINCE_JUMP = AG_COLUMNS.index("since_jump")
+AG_REACHED = AG_COLUMNS.index("reached")
+AG_COLL_GRACE = AG_COLUMNS.index("coll_grace")
+AG_OBST_GRACE = AG_COLUMNS.index("obst_grace")
+AG_LAST_OUT = AG_COLUMNS.index("last_out")
+NUM_AGENT_ACC = len(AG_COLUMNS)
 
 # advance_drone's return value: what the drone touched during the control step (bit flags).
 TOUCHED_ROOM = 1
