@@ -30,6 +30,8 @@ downwash is an impulse ``a * control_dt``.
 """
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 
 from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
@@ -47,6 +49,40 @@ from quad_env.params import (
 )
 
 from quad_env.rng import normal_from, normal_pair, uniform
+
+# The whole-batch kernels take their arrays in these bundles (numba passes namedtuples of arrays by field), so two
+# arrays of the same type cannot be swapped silently at a call. Build them with keywords; fields hold the arrays
+# themselves (no copy): writes go to the caller's arrays.
+SwarmState = namedtuple("SwarmState", (
+    "pos", "vel", "rot", "omega", "motor", "ou", "goal",  # per drone [M, ...] (module docstring)
+    "contact",  # uint8 [E, N, N]: pair a < b touching at the last step
+    "room_contact",  # uint8 [M]: touching the floor, a wall or the ceiling at the last step
+    "rng",  # uint64 [E]: the swarms' random streams
+    "step_count",  # int64 [E]: control steps of the episode so far
+))
+StepOutput = namedtuple("StepOutput", (
+    "obs",  # float [M, D]
+    "rew",  # float [M]
+    "terms",  # float [>= KERNEL_TERMS, M]: rows T_* of REWARD_TERMS
+    "done",  # bool [E]: the episode reached its length (or diverged)
+    "diverged",  # bool [E]: a drone's state became non-finite
+))
+EpisodeMetrics = namedtuple("EpisodeMetrics", (
+    "acc",  # float64 [E, NUM_ACC] (ACC_COLUMNS)
+    "agent_acc",  # float64 [M, NUM_AGENT_ACC] (AG_COLUMNS)
+    "jumped",  # uint8 [E]: set by the scenario (the goals jumped before this step), cleared by the step
+))
+Obstacles = namedtuple("Obstacles", (
+    "grid",  # uint8 [E, G, G]: 1 = a cylinder on cell (ix, iy)
+    "index",  # [E, L, L, S]: the obstacle field's lookup index (quad_env.obstacles.index_obstacles)
+    "contact",  # uint8 [M]: the drone touched a cylinder at the last step
+))
+SpawnBox = namedtuple("SpawnBox", (
+    "center",  # float64 [E, 3]: the box centre of each swarm
+    "half",  # float64 [E, 3]: its half-sizes (x, y, z)
+    "min_z",  # float: lowest spawn height, m
+    "min_sep",  # float: least distance between spawned drones, m (rejection sampling, 100 tries)
+))
 
 # Episode accumulator columns (float64 [E, NUM_ACC]): one name per column, in order; ACC_<NAME> = its index.
 ACC_COLUMNS = (
@@ -792,34 +828,35 @@ def agent_metrics(e, step, pos, goal, new_coll, new_obst, after_grace, jumped, a
 
 # ====================================================================== whole-batch kernels
 @njit(cache=True)
-def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng, step_count,
-                fp, ip, obs, rew, terms, done, diverged, acc):
+def step_kernel(action, state, fp, ip, out, acc):
     """``step_with_metrics_kernel`` without the per-drone metrics and without obstacles (``ip`` must have them
-    off): physics tests, model validation."""
-    jumped = np.zeros(step_count.shape[0], np.uint8)
-    agent_acc = np.zeros((pos.shape[0], NUM_AGENT_ACC), np.float64)
-    obst = np.zeros((step_count.shape[0], 1, 1), np.uint8)
-    obst_index = np.zeros((step_count.shape[0], 1, 1, 1), np.uint8)
-    obst_contact = np.zeros(pos.shape[0], np.uint8)
-    return step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                                    step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc,
-                                    obst, obst_index, obst_contact)
+    off): physics tests, model validation. ``acc``: float64 [E, NUM_ACC]."""
+    num_envs, num_drones = state.step_count.shape[0], state.pos.shape[0]
+    metrics = EpisodeMetrics(acc, np.zeros((num_drones, NUM_AGENT_ACC), np.float64), np.zeros(num_envs, np.uint8))
+    obstacles = Obstacles(np.zeros((num_envs, 1, 1), np.uint8), np.zeros((num_envs, 1, 1, 1), np.uint8),
+                          np.zeros(num_drones, np.uint8))
+    return step_with_metrics_kernel(action, state, fp, ip, out, metrics, obstacles)
 
 
 @njit(cache=True)
-def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                             step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc, obst,
-                             obst_index, obst_contact):
-    """One control step of all E swarms (see the module docstring). Returns the number of swarms done.
+def step_with_metrics_kernel(action, state, fp, ip, out, metrics, obstacles):
+    """One control step of all E swarms (see the module docstring): ``state`` (SwarmState) advances, ``out``
+    (StepOutput) is written, ``metrics`` (EpisodeMetrics) accumulate. Returns the number of swarms done.
 
-    ``done[e]`` = the episode of swarm e reached its length (truncation). ``diverged[e]`` = a drone's
+    ``out.done[e]`` = the episode of swarm e reached its length (truncation). ``out.diverged[e]`` = a drone's
     state became non-finite: that swarm's observation rows keep the previous step's values, its reward
     rows are 0, and it is reported done; the caller decides (raise or reset).
-    Episode metrics go to ``acc [E, NUM_ACC]`` and ``agent_acc [M, NUM_AGENT_ACC]``; ``jumped[e] = 1``
-    (set by the scenario: the goals jumped before this step) restarts the swarm's "reached" windows and
-    is cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_index`` their lookup index
-    (``quad_env.obstacles.index_obstacles``), ``obst_contact`` [M] the drones touching one.
+    Episode metrics go to ``metrics.acc [E, NUM_ACC]`` and ``metrics.agent_acc [M, NUM_AGENT_ACC]``;
+    ``metrics.jumped[e] = 1`` (set by the scenario: the goals jumped before this step) restarts the swarm's
+    "reached" windows and is cleared here. ``obstacles`` (Obstacles): the cylinders, their lookup index and
+    the drones touching one.
     """
+    pos, vel, rot, omega = state.pos, state.vel, state.rot, state.omega
+    motor, ou, goal = state.motor, state.ou, state.goal
+    contact, room_contact, rng, step_count = state.contact, state.room_contact, state.rng, state.step_count
+    obs, rew, terms, done, diverged = out.obs, out.rew, out.terms, out.done, out.diverged
+    acc, agent_acc, jumped = metrics.acc, metrics.agent_acc, metrics.jumped
+    obst, obst_index, obst_contact = obstacles.grid, obstacles.index, obstacles.contact
     n_agents = ip[I_N]
     num_envs = step_count.shape[0]
     k_slots = ip[I_K]
@@ -902,8 +939,10 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
 
 
 @njit(cache=True)
-def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst, obst_index):
-    """Observation rows of the swarms with ``selected[e]`` (after a reset or a state change)."""
+def observe_kernel(selected, state, fp, ip, obs, obstacles):
+    """Observation rows ``obs`` of the swarms with ``selected[e]`` (after a reset or a state change)."""
+    pos, vel, rot, omega, goal, rng = state.pos, state.vel, state.rot, state.omega, state.goal, state.rng
+    obst, obst_index = obstacles.grid, obstacles.index
     n_agents = ip[I_N]
     k_slots = ip[I_K]
     nb_idx = np.zeros(max(k_slots, 1), np.int64)
@@ -922,8 +961,9 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst,
 
 
 @njit(cache=True)
-def refresh_contacts_kernel(selected, pos, contact, fp, ip):
+def refresh_contacts_kernel(selected, state, fp, ip):
     """Set the contact memory of the selected swarms to the current touching pairs (no new-contact count)."""
+    pos, contact = state.pos, state.contact
     n_agents = ip[I_N]
     cd2 = fp[F_COLL_DIST] * fp[F_COLL_DIST]
     for e in range(selected.shape[0]):
@@ -986,11 +1026,12 @@ def _spawn_drone(i, e, base, n_agents, check_below, center, pos, vel, rot, omega
 
 
 @njit(cache=True)
-def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
-                 spawn_half, spawn_min_z, spawn_min_sep):
+def spawn_kernel(selected, state, box, fp, ip):
     """Start a new episode for the selected swarms: every drone spawned by ``_spawn_drone`` in order
-    (box ``center[e] +- spawn_half[e]``, ``spawn_half`` float [E, 3]), kept ``spawn_min_sep`` away from the
-    drones spawned before it."""
+    (``box``, a SpawnBox: ``center[e] +- half[e]``), kept ``min_sep`` away from the drones spawned before it."""
+    pos, vel, rot, omega, motor, ou = state.pos, state.vel, state.rot, state.omega, state.motor, state.ou
+    room_contact, rng = state.room_contact, state.rng
+    center, spawn_half, spawn_min_z, spawn_min_sep = box.center, box.half, box.min_z, box.min_sep
     n_agents = ip[I_N]
     for e in range(selected.shape[0]):
         if not selected[e]:
@@ -1002,10 +1043,12 @@ def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact
 
 
 @njit(cache=True)
-def respawn_kernel(rows, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
-                   spawn_half, spawn_min_z, spawn_min_sep):
+def respawn_kernel(rows, state, box, fp, ip):
     """Respawn the drones ``rows`` (int [R], ascending) mid-episode (``env.respawn_on_floor``): each one as
-    at an episode start, kept ``spawn_min_sep`` away from every other drone of its swarm."""
+    at an episode start (``box``, a SpawnBox), kept ``box.min_sep`` away from every other drone of its swarm."""
+    pos, vel, rot, omega, motor, ou = state.pos, state.vel, state.rot, state.omega, state.motor, state.ou
+    room_contact, rng = state.room_contact, state.rng
+    center, spawn_half, spawn_min_z, spawn_min_sep = box.center, box.half, box.min_z, box.min_sep
     n_agents = ip[I_N]
     for r in range(rows.shape[0]):
         i = rows[r]

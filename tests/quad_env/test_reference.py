@@ -5,7 +5,7 @@ import pytest
 
 from quad_env import VecQuadEnv
 from quad_env.params import KERNEL_TERMS
-from quad_env.kernels import NUM_ACC, step_kernel
+from quad_env.kernels import NUM_ACC, StepOutput, SwarmState, step_kernel
 from quad_env.reference import reference_step
 
 
@@ -43,9 +43,11 @@ def kernel_step(env, state, actions, step_count, contact):
     contact = contact.copy()
     steps = step_count.copy()
     obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((KERNEL_TERMS, M))
-    step_kernel(actions, s["pos"], s["vel"], s["rot"], s["omega"], s["motor"], ou, s["goal"], contact,
-                np.zeros(M, np.uint8), env._rng.copy(), steps, env._fp_quiet, env._ip_quiet, obs, rew, terms,
-                np.zeros(E, bool), np.zeros(E, bool), np.zeros((E, NUM_ACC)))
+    state = SwarmState(pos=s["pos"], vel=s["vel"], rot=s["rot"], omega=s["omega"], motor=s["motor"], ou=ou,
+                       goal=s["goal"], contact=contact, room_contact=np.zeros(M, np.uint8), rng=env._rng.copy(),
+                       step_count=steps)
+    out = StepOutput(obs=obs, rew=rew, terms=terms, done=np.zeros(E, bool), diverged=np.zeros(E, bool))
+    step_kernel(actions, state, env._fp_quiet, env._ip_quiet, out, np.zeros((E, NUM_ACC)))
     return s, obs, rew, terms, contact
 
 
