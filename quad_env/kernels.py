@@ -17,6 +17,15 @@ accumulators. Obstacles: ``obst [E, G, G] uint8`` (1 = a cylinder on the centre 
 cell ix spanning x in [x0 + ix * cell, x0 + (ix + 1) * cell)) and ``obst_contact [M] uint8`` (the drone
 touched a cylinder at the last step). Only the cells near a drone are looked at.
 
+The whole-batch kernels (``step_with_metrics_kernel``, ``observe_kernel``, ``spawn_kernel``, ...) take these
+arrays in namedtuples, built once with keywords by ``VecQuadEnv``: ``SwarmState`` (the drones and their
+per-swarm memories), ``StepOutput``, ``EpisodeMetrics``, ``Obstacles``, ``SpawnBox``; a field is read by name, so
+two arrays of one type cannot be swapped at a call. The per-drone helpers below them take plain arrays.
+
+Reward: the terms are ``quad_env.config.REWARD_TERMS`` (one ordered tuple; row ``T_<TERM>`` of ``terms``, from
+``quad_env.params``); ``reward_terms`` computes all but "crash" (VecQuadEnv's) for one drone. Episode
+accumulator columns: ``ACC_COLUMNS`` and ``AG_COLUMNS`` below, the ``ACC_*`` / ``AG_*`` indices derived from them.
+
 One control step of one swarm (``step_kernel``):
   1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls,
      cylinders);
