@@ -628,19 +628,27 @@ def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
 
 
 @njit(cache=True, inline="always")
-def reward_terms(i, a, dist, z, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, fp, ip, terms):
+def reward_coefficients(fp, ip):
+    """The reward's per-step weights (times the control dt where the term is per step), read once per swarm:
+    (c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, d_p, proximity over the observed
+    neighbours only)."""
+    dt = fp[F_CTRL_DT]
+    return (fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt, fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt,
+            fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z], fp[F_C_OBST], fp[F_PROX_DIST],
+            ip[I_COLL_FORM] == COLL_FORM_PAPER)
+
+
+@njit(cache=True, inline="always")
+def reward_terms(i, a, dist, z, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, coef, terms):
     """Drone ``i``'s reward terms (true state, not the noisy observation): written to ``terms[T_<term>, i]``
     (rows as ``REWARD_TERMS``); returns their sum. ``a``: the drone's index in its swarm (``coll_pen``,
     ``new_obst``, ``prox``: see ``observe_swarm``); ``dist``: its distance to goal, ``z`` its height;
-    ``nb_d2[:found]``: squared distances to its observed neighbours (the "paper" proximity sum).
-    A new term: its name in ``REWARD_TERMS``, its formula here (and in the sum), its float64 twin in
-    ``quad_env.reference``, its coefficient in ``RewardConfig`` (packed by ``pack_params``)."""
-    dt = fp[F_CTRL_DT]
-    c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
-    c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
-    c_floor, c_tilt, floor_z = fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z]
-    c_obst = fp[F_C_OBST]
-    dp = fp[F_PROX_DIST]
+    ``nb_d2[:found]``: squared distances to its observed neighbours (the "paper" proximity sum); ``coef``: the
+    swarm's ``reward_coefficients``.
+    A new term: its name in ``REWARD_TERMS``, its formula here (and in the sum), its weight in
+    ``reward_coefficients``, its float64 twin in ``quad_env.reference``, its coefficient in ``RewardConfig``
+    (packed by ``pack_params``)."""
+    c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, dp, prox_nb = coef
     dp2 = dp * dp
     wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
     u0 = min(max(action[i, 0] * 1.0, -1.0), 1.0)
@@ -649,7 +657,7 @@ def reward_terms(i, a, dist, z, omega, action, rot, coll_pen, new_obst, prox, nb
     u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
     r_pos = -c_pos * dist
     r_coll = -c_coll * coll_pen[a] - c_obst * new_obst[a]
-    if ip[I_COLL_FORM] == COLL_FORM_PAPER:  # proximity over the observed neighbours only
+    if prox_nb:  # proximity over the observed neighbours only
         near = 0.0
         for k in range(found):
             if nb_d2[k] < dp2:
@@ -699,6 +707,7 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
     sp, sv, sw = fp[F_NOISE_POS], fp[F_NOISE_VEL], fp[F_NOISE_OMEGA]
     use_obst = ip[I_OBSTACLES] != 0
     field_start = mask_start + k_slots
+    coef = reward_coefficients(fp, ip)  # once per swarm, not per drone
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -792,7 +801,7 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
                 row[q] = 0.0  # an obstacle layout with obstacles switched off (kernel tests) reads zeros
 
         if with_reward:
-            rew[i] = reward_terms(i, a, dist, zi, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, fp, ip,
+            rew[i] = reward_terms(i, a, dist, zi, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, coef,
                                   terms)
     return dist_sum / n_agents
 
