@@ -10,11 +10,10 @@ pettingzoo) load on first use of their names. The kernels cache under a hash of 
 """
 import importlib
 
-from quad_env.config import EnvConfig, PhysicsConfig, RewardConfig
+from quad_env.config import REWARD_TERMS, EnvConfig, PhysicsConfig, RewardConfig
 from quad_env.obs_layout import FIELD_KINDS, Field, ObsLayout
 
 _LAZY = {  # name -> the module that defines it, imported on first access
-    "REWARD_TERMS": "quad_env.params",
     "SCENARIOS": "quad_env.scenarios", "make_scenario": "quad_env.scenarios",
     "register_scenario": "quad_env.scenarios",
     "VecQuadEnv": "quad_env.vec_env", "DroneState": "quad_env.vec_env",
@@ -22,7 +21,7 @@ _LAZY = {  # name -> the module that defines it, imported on first access
     "QuadDroneEnv": "quad_env.adapters", "QuadSwarmVectorEnv": "quad_env.adapters",
 }
 
-__all__ = ["EnvConfig", "RewardConfig", "PhysicsConfig", "ObsLayout", "Field", "FIELD_KINDS", *_LAZY]
+__all__ = ["EnvConfig", "RewardConfig", "REWARD_TERMS", "PhysicsConfig", "ObsLayout", "Field", "FIELD_KINDS", *_LAZY]
 
 
 def __getattr__(name):

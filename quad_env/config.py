@@ -13,6 +13,10 @@ from quad_env.obs_layout import ObsLayout
 SIM_DTYPES = ("float32", "float64")
 NAN_POLICIES = ("raise", "reset")
 COLLISION_FORMS = ("paper", "pairwise")
+# The reward terms: the one list. Order of the kernels' ``terms`` rows (``quad_env.params.T_*``), of
+# ``VecQuadEnv.reward_terms`` and of the accumulator columns; a term's coefficient is the RewardConfig field of
+# its name. The kernel writes all but "crash", which VecQuadEnv adds (floor contacts) and must stay last.
+REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash")
 
 
 @dataclass
@@ -257,8 +261,7 @@ class EnvConfig:
         if self.respawn_on_floor and self.obstacles:
             raise ValueError("env.respawn_on_floor is not supported with env.obstacles=true yet (a respawn point "
                              "could lie inside a cylinder): switch one of them off")
-        for name in ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash",
-                     "obstacle_collision"):
+        for name in (*REWARD_TERMS, "obstacle_collision"):
             if not getattr(self.reward, name) >= 0:
                 raise ValueError(f"env.reward.{name} must be >= 0, got {getattr(self.reward, name)!r}")
         if not isinstance(self.reward.collision_anneal_steps, int) or self.reward.collision_anneal_steps < 0:

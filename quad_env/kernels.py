@@ -17,6 +17,15 @@ accumulators. Obstacles: ``obst [E, G, G] uint8`` (1 = a cylinder on the centre 
 cell ix spanning x in [x0 + ix * cell, x0 + (ix + 1) * cell)) and ``obst_contact [M] uint8`` (the drone
 touched a cylinder at the last step). Only the cells near a drone are looked at.
 
+The whole-batch kernels (``step_with_metrics_kernel``, ``observe_kernel``, ``spawn_kernel``, ...) take these
+arrays in namedtuples, built once with keywords by ``VecQuadEnv``: ``SwarmState`` (the drones and their
+per-swarm memories), ``StepOutput``, ``EpisodeMetrics``, ``Obstacles``, ``SpawnBox``; a field is read by name, so
+two arrays of one type cannot be swapped at a call. The per-drone helpers below them take plain arrays.
+
+Reward: the terms are ``quad_env.config.REWARD_TERMS`` (one ordered tuple; row ``T_<TERM>`` of ``terms``, from
+``quad_env.params``); ``reward_terms`` computes all but "crash" (VecQuadEnv's) for one drone. Episode
+accumulator columns: ``ACC_COLUMNS`` and ``AG_COLUMNS`` below, the ``ACC_*`` / ``AG_*`` indices derived from them.
+
 One control step of one swarm (``step_kernel``):
   1. every drone: ``substeps`` physics steps (motor lag, thrust noise, rigid body, floor and walls,
      cylinders);
@@ -30,11 +39,14 @@ downwash is an impulse ``a * control_dt``.
 """
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 
 from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.params import (
-    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
+    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK,
+    F_COLL_REST,
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
@@ -42,41 +54,101 @@ from quad_env.params import (
     I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
     COLL_FORM_PAPER, I_COLL_FORM,
     F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
-    SDF_SPACING,
+    REWARD_TERMS, SDF_SPACING, T_ACTION, T_COLLISION, T_FLOOR, T_OMEGA, T_POS, T_PROXIMITY, T_TILT,
 )
 
 from quad_env.rng import normal_from, normal_pair, uniform
 
-# Episode accumulator columns (float64 [E, NUM_ACC]).
-ACC_RETURN = 0  # sum over steps and agents of the reward
-ACC_TERMS = 1  # NUM_TERMS (8) columns: per-term sums, order of params.REWARD_TERMS
-ACC_COLLISIONS = 9  # new drone-drone contacts (pairs)
-ACC_ROOM = 10  # new floor / wall / ceiling contacts (drones)
-ACC_DIST_TAIL = 11  # sum over the last-5-s steps of the mean distance to goal
-ACC_TAIL_STEPS = 12  # number of steps in that sum
-ACC_DIST_FINAL = 13  # mean distance to goal after the latest step
-ACC_DIST_TAIL1 = 14  # sum over the last-1-s steps of the mean distance to goal
-ACC_TAIL1_STEPS = 15
-ACC_DIST_TAIL3 = 16  # sum over the last-3-s steps of the mean distance to goal
-ACC_TAIL3_STEPS = 17
-ACC_COLL_GRACE = 18  # new drone-drone contacts (pairs) after the grace period
-ACC_ROOM_GRACE = 19  # new room contacts (drones) after the grace period
-ACC_OBST = 20  # new drone-obstacle contacts (drones)
-ACC_OBST_GRACE = 21  # new drone-obstacle contacts (drones) after the grace period
-ACC_RESPAWNS = 22  # drones respawned after touching the floor (env.respawn_on_floor)
-NUM_ACC = 23
+# The whole-batch kernels take their arrays in these bundles (numba passes namedtuples of arrays by field), so two
+# arrays of the same type cannot be swapped silently at a call. Build them with keywords; fields hold the arrays
+# themselves (no copy): writes go to the caller's arrays.
+SwarmState = namedtuple("SwarmState", (
+    "pos", "vel", "rot", "omega", "motor", "ou", "goal",  # per drone [M, ...] (module docstring)
+    "contact",  # uint8 [E, N, N]: pair a < b touching at the last step
+    "room_contact",  # uint8 [M]: touching the floor, a wall or the ceiling at the last step
+    "rng",  # uint64 [E]: the swarms' random streams
+    "step_count",  # int64 [E]: control steps of the episode so far
+))
+StepOutput = namedtuple("StepOutput", (
+    "obs",  # float [M, D]
+    "rew",  # float [M]
+    "terms",  # float [>= KERNEL_TERMS, M]: rows T_* of REWARD_TERMS
+    "done",  # bool [E]: the episode reached its length (or diverged)
+    "diverged",  # bool [E]: a drone's state became non-finite
+))
+EpisodeMetrics = namedtuple("EpisodeMetrics", (
+    "acc",  # float64 [E, NUM_ACC] (ACC_COLUMNS)
+    "agent_acc",  # float64 [M, NUM_AGENT_ACC] (AG_COLUMNS)
+    "jumped",  # uint8 [E]: set by the scenario (the goals jumped before this step), cleared by the step
+))
+Obstacles = namedtuple("Obstacles", (
+    "grid",  # uint8 [E, G, G]: 1 = a cylinder on cell (ix, iy)
+    "index",  # [E, L, L, S]: the obstacle field's lookup index (quad_env.obstacles.index_obstacles)
+    "contact",  # uint8 [M]: the drone touched a cylinder at the last step
+))
+SpawnBox = namedtuple("SpawnBox", (
+    "center",  # float64 [E, 3]: the box centre of each swarm
+    "half",  # float64 [E, 3]: its half-sizes (x, y, z)
+    "min_z",  # float: lowest spawn height, m
+    "min_sep",  # float: least distance between spawned drones, m (rejection sampling, 100 tries)
+))
+
+# Episode accumulator columns (float64 [E, NUM_ACC]): one name per column, in order; ACC_<NAME> = its index.
+ACC_COLUMNS = (
+    "return",  # sum over steps and agents of the reward
+    *("term_" + t for t in REWARD_TERMS),  # per-term sums, order of REWARD_TERMS
+    "collisions",  # new drone-drone contacts (pairs)
+    "room",  # new floor / wall / ceiling contacts (drones)
+    "dist_tail",  # sum over the last-5-s steps of the mean distance to goal
+    "tail_steps",  # number of steps in that sum
+    "dist_final",  # mean distance to goal after the latest step
+    "dist_tail1",  # sum over the last-1-s steps of the mean distance to goal
+    "tail1_steps",
+    "dist_tail3",  # sum over the last-3-s steps of the mean distance to goal
+    "tail3_steps",
+    "coll_grace",  # new drone-drone contacts (pairs) after the grace period
+    "room_grace",  # new room contacts (drones) after the grace period
+    "obst",  # new drone-obstacle contacts (drones)
+    "obst_grace",  # new drone-obstacle contacts (drones) after the grace period
+    "respawns",  # drones respawned after touching the floor (env.respawn_on_floor)
+)
+ACC_RETURN = ACC_COLUMNS.index("return")
+ACC_TERMS = ACC_COLUMNS.index("term_" + REWARD_TERMS[0])  # column of term t: ACC_TERMS + T_<t>
+ACC_COLLISIONS = ACC_COLUMNS.index("collisions")
+ACC_ROOM = ACC_COLUMNS.index("room")
+ACC_DIST_TAIL = ACC_COLUMNS.index("dist_tail")
+ACC_TAIL_STEPS = ACC_COLUMNS.index("tail_steps")
+ACC_DIST_FINAL = ACC_COLUMNS.index("dist_final")
+ACC_DIST_TAIL1 = ACC_COLUMNS.index("dist_tail1")
+ACC_TAIL1_STEPS = ACC_COLUMNS.index("tail1_steps")
+ACC_DIST_TAIL3 = ACC_COLUMNS.index("dist_tail3")
+ACC_TAIL3_STEPS = ACC_COLUMNS.index("tail3_steps")
+ACC_COLL_GRACE = ACC_COLUMNS.index("coll_grace")
+ACC_ROOM_GRACE = ACC_COLUMNS.index("room_grace")
+ACC_OBST = ACC_COLUMNS.index("obst")
+ACC_OBST_GRACE = ACC_COLUMNS.index("obst_grace")
+ACC_RESPAWNS = ACC_COLUMNS.index("respawns")
+NUM_ACC = len(ACC_COLUMNS)
 
 # Per-drone episode accumulator columns (float64 [M, NUM_AGENT_ACC]): the success, reached and IColR metrics.
 SUCCESS_RADIUS = 0.5  # m: success = within this of the goal at every step of the last SUCCESS_HOLD_S ...
 SUCCESS_HOLD_S = 1.0  # ... seconds of the episode (the whole episode if shorter); see VecQuadEnv.episode_stats
 SUCCESS_WINDOW = 5  # "reached" (the earlier success): the mean distance over this many steps < SUCCESS_RADIUS
-AG_RING = 0  # SUCCESS_WINDOW columns: the latest distances to goal (ring buffer)
-AG_SINCE_JUMP = 5  # steps recorded since the last goal jump (or the episode start)
-AG_REACHED = 6  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
-AG_COLL_GRACE = 7  # new drone-drone contacts of this drone after the grace period
-AG_OBST_GRACE = 8  # new drone-obstacle contacts of this drone after the grace period
-AG_LAST_OUT = 9  # the last control step (episode clock) after which the drone was >= SUCCESS_RADIUS from its goal; 0: never
-NUM_AGENT_ACC = 10
+AG_COLUMNS = (
+    *(f"ring{k}" for k in range(SUCCESS_WINDOW)),  # the latest distances to goal (ring buffer)
+    "since_jump",  # steps recorded since the last goal jump (or the episode start)
+    "reached",  # 1 once the windowed mean distance was < SUCCESS_RADIUS since the last goal jump
+    "coll_grace",  # new drone-drone contacts of this drone after the grace period
+    "obst_grace",  # new drone-obstacle contacts of this drone after the grace period
+    "last_out",  # the last control step (episode clock) after which the drone was >= SUCCESS_RADIUS from its goal
+)  # ("last_out" 0: never)
+AG_RING = AG_COLUMNS.index("ring0")  # SUCCESS_WINDOW columns
+AG_SINCE_JUMP = AG_COLUMNS.index("since_jump")
+AG_REACHED = AG_COLUMNS.index("reached")
+AG_COLL_GRACE = AG_COLUMNS.index("coll_grace")
+AG_OBST_GRACE = AG_COLUMNS.index("obst_grace")
+AG_LAST_OUT = AG_COLUMNS.index("last_out")
+NUM_AGENT_ACC = len(AG_COLUMNS)
 
 # advance_drone's return value: what the drone touched during the control step (bit flags).
 TOUCHED_ROOM = 1
@@ -555,6 +627,58 @@ def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
     _write_field(row, start, radius, smax, b0, b1, b2, b3, b4, b5, b6, b7, b8)
 
 
+@njit(cache=True, inline="always")
+def reward_coefficients(fp, ip):
+    """The reward's per-step weights (times the control dt where the term is per step), read once per swarm:
+    (c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, d_p, proximity over the observed
+    neighbours only)."""
+    dt = fp[F_CTRL_DT]
+    return (fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt, fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt,
+            fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z], fp[F_C_OBST], fp[F_PROX_DIST],
+            ip[I_COLL_FORM] == COLL_FORM_PAPER)
+
+
+@njit(cache=True, inline="always")
+def reward_terms(i, a, dist, z, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, coef, terms):
+    """Drone ``i``'s reward terms (true state, not the noisy observation): written to ``terms[T_<term>, i]``
+    (rows as ``REWARD_TERMS``); returns their sum. ``a``: the drone's index in its swarm (``coll_pen``,
+    ``new_obst``, ``prox``: see ``observe_swarm``); ``dist``: its distance to goal, ``z`` its height;
+    ``nb_d2[:found]``: squared distances to its observed neighbours (the "paper" proximity sum); ``coef``: the
+    swarm's ``reward_coefficients``.
+    A new term: its name in ``REWARD_TERMS``, its formula here (and in the sum), its weight in
+    ``reward_coefficients``, its float64 twin in ``quad_env.reference``, its coefficient in ``RewardConfig``
+    (packed by ``pack_params``)."""
+    c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, dp, prox_nb = coef
+    dp2 = dp * dp
+    wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
+    u0 = min(max(action[i, 0] * 1.0, -1.0), 1.0)
+    u1 = min(max(action[i, 1] * 1.0, -1.0), 1.0)
+    u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
+    u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
+    r_pos = -c_pos * dist
+    r_coll = -c_coll * coll_pen[a] - c_obst * new_obst[a]
+    if prox_nb:  # proximity over the observed neighbours only
+        near = 0.0
+        for k in range(found):
+            if nb_d2[k] < dp2:
+                near += 1.0 - np.sqrt(nb_d2[k]) / dp
+        r_prox = -c_prox * near
+    else:
+        r_prox = -c_prox * prox[a]
+    r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
+    r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
+    r_floor = -c_floor if z <= floor_z else 0.0
+    r_tilt = -c_tilt * (1.0 - rot[i, 2, 2])
+    terms[T_POS, i] = r_pos
+    terms[T_COLLISION, i] = r_coll
+    terms[T_PROXIMITY, i] = r_prox
+    terms[T_OMEGA, i] = r_omega
+    terms[T_ACTION, i] = r_act
+    terms[T_FLOOR, i] = r_floor
+    terms[T_TILT, i] = r_tilt
+    return r_pos + r_coll + r_prox + r_omega + r_act + r_floor + r_tilt  # (this order: bit-reproducible)
+
+
 @njit(cache=True)
 def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, prox, px, py, pz, d2row, rng, fp, ip,
                   obs, rew, terms, nb_idx, nb_d2, with_reward, obst, obst_index):
@@ -581,16 +705,9 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
     sense2 = fp[F_SENSE_R] * fp[F_SENSE_R]
     sensor_noise = ip[I_SENSOR_NOISE] != 0
     sp, sv, sw = fp[F_NOISE_POS], fp[F_NOISE_VEL], fp[F_NOISE_OMEGA]
-    dt = fp[F_CTRL_DT]
-    c_pos, c_coll, c_prox = fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt
-    c_omega, c_act = fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt
-    c_floor, c_tilt, floor_z = fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z]
-    c_obst = fp[F_C_OBST]
     use_obst = ip[I_OBSTACLES] != 0
     field_start = mask_start + k_slots
-    prox_nb = ip[I_COLL_FORM] == COLL_FORM_PAPER  # proximity over the observed neighbours only
-    dp = fp[F_PROX_DIST]
-    dp2 = dp * dp
+    coef = reward_coefficients(fp, ip)  # once per swarm, not per drone
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -683,35 +800,9 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
             for q in range(field_start, ip[I_OBS_DIM]):
                 row[q] = 0.0  # an obstacle layout with obstacles switched off (kernel tests) reads zeros
 
-        # ---- reward terms (true state, not the noisy observation)
         if with_reward:
-            wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
-            u0 = min(max(action[i, 0] * 1.0, -1.0), 1.0)
-            u1 = min(max(action[i, 1] * 1.0, -1.0), 1.0)
-            u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
-            u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
-            r_pos = -c_pos * dist
-            r_coll = -c_coll * coll_pen[a] - c_obst * new_obst[a]
-            if prox_nb:
-                near = 0.0
-                for k in range(found):
-                    if nb_d2[k] < dp2:
-                        near += 1.0 - np.sqrt(nb_d2[k]) / dp
-                r_prox = -c_prox * near
-            else:
-                r_prox = -c_prox * prox[a]
-            r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
-            r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
-            r_floor = -c_floor if zi <= floor_z else 0.0
-            r_tilt = -c_tilt * (1.0 - rot[i, 2, 2])
-            terms[0, i] = r_pos
-            terms[1, i] = r_coll
-            terms[2, i] = r_prox
-            terms[3, i] = r_omega
-            terms[4, i] = r_act
-            terms[5, i] = r_floor
-            terms[6, i] = r_tilt
-            rew[i] = r_pos + r_coll + r_prox + r_omega + r_act + r_floor + r_tilt
+            rew[i] = reward_terms(i, a, dist, zi, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, coef,
+                                  terms)
     return dist_sum / n_agents
 
 
@@ -755,34 +846,35 @@ def agent_metrics(e, step, pos, goal, new_coll, new_obst, after_grace, jumped, a
 
 # ====================================================================== whole-batch kernels
 @njit(cache=True)
-def step_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng, step_count,
-                fp, ip, obs, rew, terms, done, diverged, acc):
+def step_kernel(action, state, fp, ip, out, acc):
     """``step_with_metrics_kernel`` without the per-drone metrics and without obstacles (``ip`` must have them
-    off): physics tests, model validation."""
-    jumped = np.zeros(step_count.shape[0], np.uint8)
-    agent_acc = np.zeros((pos.shape[0], NUM_AGENT_ACC), np.float64)
-    obst = np.zeros((step_count.shape[0], 1, 1), np.uint8)
-    obst_index = np.zeros((step_count.shape[0], 1, 1, 1), np.uint8)
-    obst_contact = np.zeros(pos.shape[0], np.uint8)
-    return step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                                    step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc,
-                                    obst, obst_index, obst_contact)
+    off): physics tests, model validation. ``acc``: float64 [E, NUM_ACC]."""
+    num_envs, num_drones = state.step_count.shape[0], state.pos.shape[0]
+    metrics = EpisodeMetrics(acc, np.zeros((num_drones, NUM_AGENT_ACC), np.float64), np.zeros(num_envs, np.uint8))
+    obstacles = Obstacles(np.zeros((num_envs, 1, 1), np.uint8), np.zeros((num_envs, 1, 1, 1), np.uint8),
+                          np.zeros(num_drones, np.uint8))
+    return step_with_metrics_kernel(action, state, fp, ip, out, metrics, obstacles)
 
 
 @njit(cache=True)
-def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, contact, room_contact, rng,
-                             step_count, fp, ip, obs, rew, terms, done, diverged, acc, jumped, agent_acc, obst,
-                             obst_index, obst_contact):
-    """One control step of all E swarms (see the module docstring). Returns the number of swarms done.
+def step_with_metrics_kernel(action, state, fp, ip, out, metrics, obstacles):
+    """One control step of all E swarms (see the module docstring): ``state`` (SwarmState) advances, ``out``
+    (StepOutput) is written, ``metrics`` (EpisodeMetrics) accumulate. Returns the number of swarms done.
 
-    ``done[e]`` = the episode of swarm e reached its length (truncation). ``diverged[e]`` = a drone's
+    ``out.done[e]`` = the episode of swarm e reached its length (truncation). ``out.diverged[e]`` = a drone's
     state became non-finite: that swarm's observation rows keep the previous step's values, its reward
     rows are 0, and it is reported done; the caller decides (raise or reset).
-    Episode metrics go to ``acc [E, NUM_ACC]`` and ``agent_acc [M, NUM_AGENT_ACC]``; ``jumped[e] = 1``
-    (set by the scenario: the goals jumped before this step) restarts the swarm's "reached" windows and
-    is cleared here. ``obst`` [E, G, G] holds the cylinders, ``obst_index`` their lookup index
-    (``quad_env.obstacles.index_obstacles``), ``obst_contact`` [M] the drones touching one.
+    Episode metrics go to ``metrics.acc [E, NUM_ACC]`` and ``metrics.agent_acc [M, NUM_AGENT_ACC]``;
+    ``metrics.jumped[e] = 1`` (set by the scenario: the goals jumped before this step) restarts the swarm's
+    "reached" windows and is cleared here. ``obstacles`` (Obstacles): the cylinders, their lookup index and
+    the drones touching one.
     """
+    pos, vel, rot, omega = state.pos, state.vel, state.rot, state.omega
+    motor, ou, goal = state.motor, state.ou, state.goal
+    contact, room_contact, rng, step_count = state.contact, state.room_contact, state.rng, state.step_count
+    obs, rew, terms, done, diverged = out.obs, out.rew, out.terms, out.done, out.diverged
+    acc, agent_acc, jumped = metrics.acc, metrics.agent_acc, metrics.jumped
+    obst, obst_index, obst_contact = obstacles.grid, obstacles.index, obstacles.contact
     n_agents = ip[I_N]
     num_envs = step_count.shape[0]
     k_slots = ip[I_K]
@@ -865,8 +957,10 @@ def step_with_metrics_kernel(action, pos, vel, rot, omega, motor, ou, goal, cont
 
 
 @njit(cache=True)
-def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst, obst_index):
-    """Observation rows of the swarms with ``selected[e]`` (after a reset or a state change)."""
+def observe_kernel(selected, state, fp, ip, obs, obstacles):
+    """Observation rows ``obs`` of the swarms with ``selected[e]`` (after a reset or a state change)."""
+    pos, vel, rot, omega, goal, rng = state.pos, state.vel, state.rot, state.omega, state.goal, state.rng
+    obst, obst_index = obstacles.grid, obstacles.index
     n_agents = ip[I_N]
     k_slots = ip[I_K]
     nb_idx = np.zeros(max(k_slots, 1), np.int64)
@@ -874,7 +968,7 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst,
     dummy_action = np.zeros((1, 4), np.float64)
     dummy_vec = np.zeros(n_agents, np.float64)
     dummy_rew = np.zeros(1, np.float32)
-    dummy_terms = np.zeros((5, 1), np.float32)
+    dummy_terms = np.zeros((KERNEL_TERMS, 1), np.float32)
     px, py, pz = np.zeros(n_agents), np.zeros(n_agents), np.zeros(n_agents)
     row = np.zeros(n_agents)
     for e in range(selected.shape[0]):
@@ -885,8 +979,9 @@ def observe_kernel(selected, pos, vel, rot, omega, goal, rng, fp, ip, obs, obst,
 
 
 @njit(cache=True)
-def refresh_contacts_kernel(selected, pos, contact, fp, ip):
+def refresh_contacts_kernel(selected, state, fp, ip):
     """Set the contact memory of the selected swarms to the current touching pairs (no new-contact count)."""
+    pos, contact = state.pos, state.contact
     n_agents = ip[I_N]
     cd2 = fp[F_COLL_DIST] * fp[F_COLL_DIST]
     for e in range(selected.shape[0]):
@@ -949,11 +1044,12 @@ def _spawn_drone(i, e, base, n_agents, check_below, center, pos, vel, rot, omega
 
 
 @njit(cache=True)
-def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
-                 spawn_half, spawn_min_z, spawn_min_sep):
+def spawn_kernel(selected, state, box, fp, ip):
     """Start a new episode for the selected swarms: every drone spawned by ``_spawn_drone`` in order
-    (box ``center[e] +- spawn_half[e]``, ``spawn_half`` float [E, 3]), kept ``spawn_min_sep`` away from the
-    drones spawned before it."""
+    (``box``, a SpawnBox: ``center[e] +- half[e]``), kept ``min_sep`` away from the drones spawned before it."""
+    pos, vel, rot, omega, motor, ou = state.pos, state.vel, state.rot, state.omega, state.motor, state.ou
+    room_contact, rng = state.room_contact, state.rng
+    center, spawn_half, spawn_min_z, spawn_min_sep = box.center, box.half, box.min_z, box.min_sep
     n_agents = ip[I_N]
     for e in range(selected.shape[0]):
         if not selected[e]:
@@ -965,10 +1061,12 @@ def spawn_kernel(selected, center, pos, vel, rot, omega, motor, ou, room_contact
 
 
 @njit(cache=True)
-def respawn_kernel(rows, center, pos, vel, rot, omega, motor, ou, room_contact, rng, fp, ip,
-                   spawn_half, spawn_min_z, spawn_min_sep):
+def respawn_kernel(rows, state, box, fp, ip):
     """Respawn the drones ``rows`` (int [R], ascending) mid-episode (``env.respawn_on_floor``): each one as
-    at an episode start, kept ``spawn_min_sep`` away from every other drone of its swarm."""
+    at an episode start (``box``, a SpawnBox), kept ``box.min_sep`` away from every other drone of its swarm."""
+    pos, vel, rot, omega, motor, ou = state.pos, state.vel, state.rot, state.omega, state.motor, state.ou
+    room_contact, rng = state.room_contact, state.rng
+    center, spawn_half, spawn_min_z, spawn_min_sep = box.center, box.half, box.min_z, box.min_sep
     n_agents = ip[I_N]
     for r in range(rows.shape[0]):
         i = rows[r]

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from quad_env.config import COLLISION_FORMS, EnvConfig
+from quad_env.config import COLLISION_FORMS, REWARD_TERMS, EnvConfig
 from quad_env.obstacles import lookup_pad
 
 # ---------------------------------------------------------------- float parameters (float64 [NUM_F])
@@ -86,9 +86,16 @@ COLL_FORM_PAIRWISE = 1  # c2 per new touching pair, c3 over every other drone
 METRIC_GRACE_S = 1.5  # grace period of the collision metrics, s
 SDF_SPACING = 0.1  # the obstacle field samples a 3 x 3 horizontal grid this far apart (m) around the drone
 
-# Reward terms, in the order of the kernel's ``terms`` rows.
-REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash")
-KERNEL_TERMS = 7  # the step kernel writes the first 7 rows; "crash" is added by VecQuadEnv (floor contacts)
+# Rows of the reward ``terms`` array [len(REWARD_TERMS), M], from the one list (``quad_env.config.REWARD_TERMS``).
+T_POS = REWARD_TERMS.index("pos")
+T_COLLISION = REWARD_TERMS.index("collision")
+T_PROXIMITY = REWARD_TERMS.index("proximity")
+T_OMEGA = REWARD_TERMS.index("omega")
+T_ACTION = REWARD_TERMS.index("action")
+T_FLOOR = REWARD_TERMS.index("floor")
+T_TILT = REWARD_TERMS.index("tilt")
+T_CRASH = REWARD_TERMS.index("crash")
+KERNEL_TERMS = T_CRASH  # the step kernel writes rows [0, KERNEL_TERMS); "crash" (the last) is VecQuadEnv's
 
 
 def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):

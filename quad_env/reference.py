@@ -9,7 +9,8 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from quad_env.config import EnvConfig
+from quad_env.config import REWARD_TERMS, EnvConfig
+from quad_env.params import KERNEL_TERMS
 
 # Motor positions (x, y) over arm_xy and spin signs: (+x,-y), (-x,-y), (-x,+y), (+x,+y).
 MOTOR_XY = np.array([[1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
@@ -91,7 +92,8 @@ def reference_step(state: Dict[str, np.ndarray], actions: np.ndarray, cfg: EnvCo
         state: dict of float64 arrays pos, vel, rot, omega, motor, goal (shapes as ``DroneState``).
         actions: [M, 4]; step_count: [E] control steps done before this one; contact: [E, N, N] (a < b).
     Returns:
-        new_state, obs [M, D] (float64), rew [M], terms [KERNEL_TERMS = 7, M] (the step kernel's terms; "crash" is added by VecQuadEnv), new_contact [E, N, N].
+        new_state, obs [M, D] (float64), rew [M], terms [KERNEL_TERMS, M] (the step kernel's rows of
+        ``REWARD_TERMS``: all but "crash", which VecQuadEnv adds), new_contact [E, N, N].
     """
     return reference_step_obstacles(state, actions, cfg, step_count, contact, None, None)[:5]
 
@@ -235,16 +237,17 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
                 obs[i, off:off + nb_dim] = np.concatenate(block)
                 obs[i, 18 + K * nb_dim + k] = 1.0
 
-    # ---- reward terms
+    # ---- reward terms: one formula per kernel-written name of REWARD_TERMS, stacked in that order
     paper = rc.collision_form == "paper"
-    terms = np.stack([
-        -rc.pos * ctrl_dt * np.linalg.norm(pos - goal, axis=1),
-        -rc.collision * (entered_contact if paper else new_coll) - rc.obstacle_collision * new_obstacle,
-        -rc.proximity * ctrl_dt * (prox_neighbours if paper else prox),
-        -rc.omega * ctrl_dt * np.linalg.norm(omega, axis=1),
-        -rc.action * ctrl_dt * np.linalg.norm(u, axis=1),
-        -rc.floor * ctrl_dt * (pos[:, 2] <= p.floor_z),
-        -rc.tilt * ctrl_dt * (1.0 - rot[:, 2, 2]),
-    ])
+    formulas = {
+        "pos": -rc.pos * ctrl_dt * np.linalg.norm(pos - goal, axis=1),
+        "collision": -rc.collision * (entered_contact if paper else new_coll) - rc.obstacle_collision * new_obstacle,
+        "proximity": -rc.proximity * ctrl_dt * (prox_neighbours if paper else prox),
+        "omega": -rc.omega * ctrl_dt * np.linalg.norm(omega, axis=1),
+        "action": -rc.action * ctrl_dt * np.linalg.norm(u, axis=1),
+        "floor": -rc.floor * ctrl_dt * (pos[:, 2] <= p.floor_z),
+        "tilt": -rc.tilt * ctrl_dt * (1.0 - rot[:, 2, 2]),
+    }
+    terms = np.stack([formulas[name] for name in REWARD_TERMS[:KERNEL_TERMS]])
     new_state = dict(pos=pos, vel=vel, rot=rot, omega=omega, motor=motor, goal=goal)
     return new_state, obs, terms.sum(0), terms, contact, touched_obstacle

@@ -32,9 +32,12 @@ STATE_WIDTH = 29
 
 
 @njit(cache=True)
-def snapshot_kernel(selected, step_count, interval, pos, vel, rot, omega, motor, ou, goal, ring, ring_step):
-    """Pack the state of every selected swarm whose clock is a multiple of ``interval`` into its ring
-    ``ring [E, R, N, STATE_WIDTH]`` (slot (step / interval) mod R; ``ring_step [E, R]`` = the step)."""
+def snapshot_kernel(selected, state, interval, ring, ring_step):
+    """Pack the state (``quad_env.kernels.SwarmState``) of every selected swarm whose clock is a multiple of
+    ``interval`` into its ring ``ring [E, R, N, STATE_WIDTH]`` (slot (step / interval) mod R; ``ring_step [E, R]``
+    = the step)."""
+    step_count, pos, vel, rot, omega = state.step_count, state.pos, state.vel, state.rot, state.omega
+    motor, ou, goal = state.motor, state.ou, state.goal
     num_slots, n_agents = ring.shape[1], ring.shape[2]
     for e in range(selected.shape[0]):
         s = step_count[e]
@@ -109,15 +112,14 @@ class CollisionReplay:
         self._slot = np.zeros(num_envs, np.int64)
         self._everyone = np.ones(num_envs, bool)
 
-    def snapshot(self, selected, step_count, pos, vel, rot, omega, motor, ou, goal) -> None:
-        snapshot_kernel(selected, step_count, self.interval, pos, vel, rot, omega, motor, ou, goal, self.ring,
-                        self.ring_step)
+    def snapshot(self, selected, state) -> None:
+        snapshot_kernel(selected, state, self.interval, self.ring, self.ring_step)
 
-    def after_step(self, step_count, collisions_after_grace, obst, episode_name, state) -> None:
+    def after_step(self, state, collisions_after_grace, obst, episode_name) -> None:
         """Store the pre-collision states of swarms that just collided, then snapshot the current step.
-        ``state`` = (pos, vel, rot, omega, motor, ou, goal) arrays; ``episode_name(e)`` names the scenario."""
-        if find_new_collisions(collisions_after_grace, self.eligible, step_count, self.lookback, self.interval,
-                               self.ring_step, self._slot):
+        ``state``: the env's ``quad_env.kernels.SwarmState``; ``episode_name(e)`` names the scenario."""
+        if find_new_collisions(collisions_after_grace, self.eligible, state.step_count, self.lookback,
+                               self.interval, self.ring_step, self._slot):
             for e in np.flatnonzero(self._slot >= 0):
                 k = self.next
                 self.states[k] = self.ring[e, self._slot[e]]
@@ -126,7 +128,7 @@ class CollisionReplay:
                 self.next = (k + 1) % len(self.states)
                 self.count = min(self.count + 1, len(self.states))
                 self.eligible[e] = False
-        self.snapshot(self._everyone, step_count, *state)
+        self.snapshot(self._everyone, state)
 
     def draw(self, selected, rng) -> np.ndarray:
         """Entry index per swarm (-1: fresh spawn) for an automatic reset of the selected swarms."""

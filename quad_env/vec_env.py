@@ -41,14 +41,16 @@ from quad_env.kernels import (
     ACC_COLL_GRACE, ACC_COLLISIONS, ACC_DIST_FINAL, ACC_DIST_TAIL, ACC_DIST_TAIL1, ACC_DIST_TAIL3, ACC_OBST,
     ACC_OBST_GRACE, ACC_RESPAWNS, ACC_RETURN, ACC_ROOM, ACC_ROOM_GRACE, ACC_TAIL1_STEPS, ACC_TAIL3_STEPS,
     ACC_TAIL_STEPS, ACC_TERMS, AG_COLL_GRACE, AG_LAST_OUT, AG_OBST_GRACE, AG_REACHED, NUM_ACC, NUM_AGENT_ACC,
-    SUCCESS_HOLD_S, all_finite, observe_kernel, refresh_contacts_kernel, respawn_kernel, spawn_kernel,
-    step_with_metrics_kernel,
+    SUCCESS_HOLD_S, EpisodeMetrics, Obstacles, SpawnBox, StepOutput, SwarmState, all_finite, observe_kernel,
+    refresh_contacts_kernel, respawn_kernel, spawn_kernel, step_with_metrics_kernel,
 )
 from quad_env.obstacles import (
     INDEX_SLOTS, OBSTACLE_CLEARANCE, clear_spawns_and_goals, draw_obstacles, grid_origin, index_obstacles, index_spec,
     lookup_pad,
 )
-from quad_env.params import F_C_COLL, F_C_OBST, F_C_PROX, I_EP_STEPS, REWARD_TERMS, SDF_SPACING, pack_params
+from quad_env.params import (
+    F_C_COLL, F_C_OBST, F_C_PROX, I_EP_STEPS, REWARD_TERMS, SDF_SPACING, T_CRASH, pack_params,
+)
 from quad_env.replay import CollisionReplay
 from quad_env.rng import seed_streams
 from quad_env.scenarios import SPAWN_HALF, SPAWN_MIN_SEP, SPAWN_MIN_Z, make_scenario
@@ -141,11 +143,20 @@ class VecQuadEnv:
         # ---- floor contacts: reward.crash and the respawn_on_floor training aid (off in the paper's setting)
         self._floor_on = cfg.respawn_on_floor or cfg.reward.crash > 0
         self._on_floor = np.zeros(M, bool)  # touching the floor after the previous step
-        self._crash_row = REWARD_TERMS.index("crash")
         self._replay = (CollisionReplay(E, N, self._obst.shape[1:], cfg.control_dt, cfg.replay_buffer_size,
                                         cfg.replay_prob) if cfg.replay_prob > 0 else None)
         self._replayed_name: List[Optional[str]] = [None] * E  # scenario name of a replayed episode
         self._everyone = np.ones(E, bool)
+        # ---- the kernels' argument bundles (views of the arrays above, built once: keep the arrays, never rebind)
+        self._state = SwarmState(pos=self._pos, vel=self._vel, rot=self._rot, omega=self._omega, motor=self._motor,
+                                 ou=self._ou, goal=self._goal, contact=self._contact, room_contact=self._room_contact,
+                                 rng=self._rng, step_count=self._step_count)
+        self._out = StepOutput(obs=self._obs, rew=self._rew, terms=self._terms, done=self._done,
+                               diverged=self._diverged)
+        self._metrics = EpisodeMetrics(acc=self._acc, agent_acc=self._agent_acc, jumped=self.scenario.jumped)
+        self._obstacles = Obstacles(grid=self._obst, index=self._obst_index, contact=self._obst_contact)
+        self._spawn_box = SpawnBox(center=self._center, half=self.scenario.spawn_half, min_z=SPAWN_MIN_Z,
+                                   min_sep=SPAWN_MIN_SEP)
         self._hold_steps = max(1, int(round(SUCCESS_HOLD_S / cfg.control_dt)))  # success: the last 1 s
         self.reset()
 
@@ -189,16 +200,13 @@ class VecQuadEnv:
         if self.scenario.dynamic:
             self.scenario.update(self._goal, self._step_count, self._rng)
         self._done[:] = False
-        n_done = step_with_metrics_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
-                                          self._goal, self._contact, self._room_contact, self._rng,
-                                          self._step_count, self._fp, self._ip, self._obs, self._rew, self._terms,
-                                          self._done, self._diverged, self._acc, self.scenario.jumped,
-                                          self._agent_acc, self._obst, self._obst_index, self._obst_contact)
+        n_done = step_with_metrics_kernel(act, self._state, self._fp, self._ip, self._out, self._metrics,
+                                          self._obstacles)
         if self._floor_on:
             self._floor_contacts()
         if self._replay is not None:
-            self._replay.after_step(self._step_count, self._acc[:, ACC_COLL_GRACE] + self._acc[:, ACC_OBST_GRACE],
-                                    self._obst, self._episode_name, self._state_arrays())
+            self._replay.after_step(self._state, self._acc[:, ACC_COLL_GRACE] + self._acc[:, ACC_OBST_GRACE],
+                                    self._obst, self._episode_name)
         if n_done:
             self._finish_episodes()
         else:
@@ -236,8 +244,7 @@ class VecQuadEnv:
     def observe(self) -> np.ndarray:
         """Rebuild the observation of the current state (sensor noise as configured) and return the
         obs buffer float32 [E*N, D]."""
-        observe_kernel(self._everyone, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng,
-                       self._fp, self._ip, self._obs, self._obst, self._obst_index)
+        observe_kernel(self._everyone, self._state, self._fp, self._ip, self._obs, self._obstacles)
         return self._obs
 
     # ------------------------------------------------------------------ reward schedule
@@ -325,7 +332,7 @@ class VecQuadEnv:
             raise ValueError("set_state: motor speeds must be in [0, 1]")
         for name, arr in checked.items():
             spec[name][2][...] = arr
-        refresh_contacts_kernel(self._everyone, self._pos, self._contact, self._fp, self._ip)
+        refresh_contacts_kernel(self._everyone, self._state, self._fp, self._ip)
         self._room_contact[:] = 0
         self._on_floor[:] = self._pos[:, 2] <= self.cfg.physics.floor_z  # resting drones are no new contact
         self._obst_contact[:] = 0
@@ -345,11 +352,8 @@ class VecQuadEnv:
         ip[I_EP_STEPS] = _NEVER
         done = np.zeros(self.num_envs, bool)
         diverged = np.zeros(self.num_envs, bool)
-        step_with_metrics_kernel(act, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
-                                 self._goal, self._contact, self._room_contact, self._rng, self._step_count, fp,
-                                 ip, self._obs, self._rew, self._terms, done, diverged, self._acc,
-                                 self.scenario.jumped, self._agent_acc, self._obst, self._obst_index,
-                                 self._obst_contact)
+        out = self._out._replace(done=done, diverged=diverged)
+        step_with_metrics_kernel(act, self._state, fp, ip, out, self._metrics, self._obstacles)
         if diverged.any():
             raise FloatingPointError(f"simulate: non-finite state in swarms {np.flatnonzero(diverged).tolist()}")
         return self.get_state()
@@ -370,9 +374,6 @@ class VecQuadEnv:
                         0.5 * cfg.obstacle_diameter, cfg.obstacle_sdf_max, lookup_pad(cfg), SDF_SPACING + 1e-6,
                         index_spec(cfg)[1])
 
-    def _state_arrays(self):
-        return self._pos, self._vel, self._rot, self._omega, self._motor, self._ou, self._goal
-
     def _episode_name(self, e: int) -> str:
         name = self._replayed_name[e]
         return self.scenario.episode_name(e) if name is None else name
@@ -392,16 +393,15 @@ class VecQuadEnv:
         self.scenario.spawn_half[fresh] = SPAWN_HALF
         self.scenario.set_active(fresh, True)
         self.scenario.reset(fresh, self._goal, self._center, self._rng)
-        spawn_kernel(fresh, self._center, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
-                     self._room_contact, self._rng, self._fp, self._ip, self.scenario.spawn_half, SPAWN_MIN_Z,
-                     SPAWN_MIN_SEP)
+        spawn_kernel(fresh, self._state, self._spawn_box, self._fp, self._ip)
         if cfg.obstacles:
             clear_spawns_and_goals(fresh, self._obst, self._pos, self._goal, self.num_agents, grid_origin(cfg),
                                    cfg.obstacle_cell_size, 0.5 * cfg.obstacle_diameter, OBSTACLE_CLEARANCE)
         for e in np.flatnonzero(fresh):
             self._replayed_name[e] = None
         if replayed.any():
-            arrays = dict(zip(("pos", "vel", "rot", "omega", "motor", "thrust_noise", "goal"), self._state_arrays()))
+            arrays = dict(pos=self._pos, vel=self._vel, rot=self._rot, omega=self._omega, motor=self._motor,
+                          thrust_noise=self._ou, goal=self._goal)
             for e in np.flatnonzero(replayed):
                 name = self._replay.restore(int(e), int(self._replay.choice[e]), arrays, self._obst, self.num_agents)
                 self._replayed_name[e] = name
@@ -410,7 +410,7 @@ class VecQuadEnv:
         if cfg.obstacles:
             self._index_obstacles(selected)
         self._obst_contact[np.repeat(selected, self.num_agents)] = 0
-        refresh_contacts_kernel(selected, self._pos, self._contact, self._fp, self._ip)
+        refresh_contacts_kernel(selected, self._state, self._fp, self._ip)
         self._step_count[selected] = 0
         self._on_floor[np.repeat(selected, self.num_agents)] = False
         self._acc[selected] = 0.0
@@ -420,9 +420,8 @@ class VecQuadEnv:
         self._needs_reset[selected] = False
         if self._replay is not None:
             self._replay.start_episodes(selected, replayed)
-            self._replay.snapshot(selected, self._step_count, *self._state_arrays())
-        observe_kernel(selected, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
-                       self._ip, self._obs, self._obst, self._obst_index)
+            self._replay.snapshot(selected, self._state)
+        observe_kernel(selected, self._state, self._fp, self._ip, self._obs, self._obstacles)
 
     def _floor_contacts(self) -> None:
         """After a step: ``reward.crash`` for every new floor contact, then (``respawn_on_floor``) those
@@ -431,14 +430,14 @@ class VecQuadEnv:
         live = ~np.repeat(self._done | self._diverged, N)  # [M]
         on_floor = self._pos[:, 2] <= self.cfg.physics.floor_z  # [M]
         new = on_floor & ~self._on_floor & live  # [M]
-        crash = self._terms[self._crash_row]  # [M] view
+        crash = self._terms[T_CRASH]  # [M] view
         crash[:] = 0.0
         c = self.cfg.reward.crash
         if c > 0 and new.any():
             crash[new] = -c
             self._rew[new] -= c
             per_swarm = c * new.reshape(E, N).sum(axis=1)  # [E]
-            self._acc[:, ACC_TERMS + self._crash_row] -= per_swarm
+            self._acc[:, ACC_TERMS + T_CRASH] -= per_swarm
             self._acc[:, ACC_RETURN] -= per_swarm
         self._on_floor[:] = on_floor
         if not self.cfg.respawn_on_floor:
@@ -446,16 +445,13 @@ class VecQuadEnv:
         rows = np.flatnonzero(on_floor & live)
         if rows.size == 0:
             return
-        respawn_kernel(rows, self._center, self._pos, self._vel, self._rot, self._omega, self._motor, self._ou,
-                       self._room_contact, self._rng, self._fp, self._ip, self.scenario.spawn_half, SPAWN_MIN_Z,
-                       SPAWN_MIN_SEP)
+        respawn_kernel(rows, self._state, self._spawn_box, self._fp, self._ip)
         self._on_floor[rows] = False
         swarms = np.zeros(E, bool)
         swarms[rows // N] = True
         self._acc[:, ACC_RESPAWNS] += np.bincount(rows // N, minlength=E)
-        refresh_contacts_kernel(swarms, self._pos, self._contact, self._fp, self._ip)
-        observe_kernel(swarms, self._pos, self._vel, self._rot, self._omega, self._goal, self._rng, self._fp,
-                       self._ip, self._obs, self._obst, self._obst_index)
+        refresh_contacts_kernel(swarms, self._state, self._fp, self._ip)
+        observe_kernel(swarms, self._state, self._fp, self._ip, self._obs, self._obstacles)
 
     def _finish_episodes(self) -> None:
         """Record stats, save final observations and restart the swarms that finished."""

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from quad_env import EnvConfig
+from quad_env import REWARD_TERMS, EnvConfig
 from quad_env.adapters import QuadSwarmEnv, QuadSwarmParallelEnv
 
 
@@ -52,4 +52,4 @@ def test_pettingzoo_agents_and_truncation():
     env.step({a: np.zeros(4) for a in env.agents})
     _, rew, term, trunc, info = env.step({a: np.zeros(4) for a in env.agents})
     assert all(trunc.values()) and not any(term.values()) and env.agents == []
-    assert set(info["drone_0"]) == {"pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash"}
+    assert set(info["drone_0"]) == set(REWARD_TERMS)

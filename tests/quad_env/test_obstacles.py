@@ -6,7 +6,9 @@ import pytest
 
 from quad_env import EnvConfig, RewardConfig, VecQuadEnv, make_scenario
 from quad_env.params import KERNEL_TERMS
-from quad_env.kernels import NUM_ACC, NUM_AGENT_ACC, step_with_metrics_kernel
+from quad_env.kernels import (
+    NUM_ACC, NUM_AGENT_ACC, EpisodeMetrics, Obstacles, StepOutput, SwarmState, step_with_metrics_kernel,
+)
 from quad_env.obstacles import (
     INDEX_SLOTS, OBSTACLE_CLEARANCE, draw_obstacles, index_obstacles, lookup_pad, obstacle_centers,
 )
@@ -147,11 +149,14 @@ def test_kernel_matches_the_numpy_reference_with_obstacles(quiet_cfg, steps_done
         M, D = E * N, env.obs_dim
         obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((KERNEL_TERMS, M))
         kcontact, kobst = contact.copy(), prev_contact.copy()
-        step_with_metrics_kernel(actions, s["pos"], s["vel"], s["rot"], s["omega"], s["motor"], np.zeros((M, 4)),
-                                 s["goal"], kcontact, np.zeros(M, np.uint8), env._rng.copy(),
-                                 np.full(E, steps_done, np.int64), env._fp_quiet, env._ip_quiet, obs, rew, terms,
-                                 np.zeros(E, bool), np.zeros(E, bool), np.zeros((E, NUM_ACC)), np.zeros(E, np.uint8),
-                                 np.zeros((M, NUM_AGENT_ACC)), grid, obstacle_index(grid, cfg), kobst)
+        kstate = SwarmState(pos=s["pos"], vel=s["vel"], rot=s["rot"], omega=s["omega"], motor=s["motor"],
+                            ou=np.zeros((M, 4)), goal=s["goal"], contact=kcontact, room_contact=np.zeros(M, np.uint8),
+                            rng=env._rng.copy(), step_count=np.full(E, steps_done, np.int64))
+        out = StepOutput(obs=obs, rew=rew, terms=terms, done=np.zeros(E, bool), diverged=np.zeros(E, bool))
+        metrics = EpisodeMetrics(acc=np.zeros((E, NUM_ACC)), agent_acc=np.zeros((M, NUM_AGENT_ACC)),
+                                 jumped=np.zeros(E, np.uint8))
+        step_with_metrics_kernel(actions, kstate, env._fp_quiet, env._ip_quiet, out, metrics,
+                                 Obstacles(grid=grid, index=obstacle_index(grid, cfg), contact=kobst))
         rs, robs, rrew, rterms, rcontact, robst = reference_step_obstacles(
             state, actions, cfg, np.full(E, steps_done), contact, grid, prev_contact)
         for name in ("pos", "vel", "rot", "omega", "motor"):

@@ -122,15 +122,14 @@ def test_body_rates_are_clipped(hover_env, w0, expected):
 
 
 @njit
-def _tumble(actions, pos, vel, rot, omega, motor, ou, goal, contact, room, rng, steps, fp, ip, obs, rew, terms,
-            done, diverged, acc):
+def _tumble(actions, state, fp, ip, out, acc):
     """Step one drone through all actions, keeping it mid-air; return the worst |R^T R - I|."""
+    pos, vel, rot = state.pos, state.vel, state.rot
     worst = 0.0
     for t in range(actions.shape[0]):
         pos[0, 0], pos[0, 1], pos[0, 2] = 0.0, 0.0, 5.0
         vel[0, 0], vel[0, 1], vel[0, 2] = 0.0, 0.0, 0.0
-        step_kernel(actions[t], pos, vel, rot, omega, motor, ou, goal, contact, room, rng, steps, fp, ip, obs, rew,
-                    terms, done, diverged, acc)
+        step_kernel(actions[t], state, fp, ip, out, acc)
         for r in range(3):
             for c in range(3):
                 dot = rot[0, 0, r] * rot[0, 0, c] + rot[0, 1, r] * rot[0, 1, c] + rot[0, 2, r] * rot[0, 2, c]
@@ -149,9 +148,7 @@ def test_rotation_stays_orthonormal_over_1e5_steps(dtype, tol):
     actions = np.random.default_rng(0).uniform(-1, 1, (100_000, 1, 4))
     env = _tumble_env(dtype, reortho=50)
     e = env
-    worst = _tumble(actions, e._pos, e._vel, e._rot, e._omega, e._motor, e._ou, e._goal, e._contact,
-                    e._room_contact, e._rng, e._step_count, e._fp, e._ip, e._obs, e._rew, e._terms, e._done,
-                    e._diverged, e._acc)
+    worst = _tumble(actions, e._state, e._fp, e._ip, e._out, e._acc)
     assert np.abs(e._omega).max() > 10  # it really tumbled
     assert worst < tol
     assert np.linalg.det(e._rot[0].astype(np.float64)) == pytest.approx(1.0, abs=tol)
@@ -161,9 +158,7 @@ def test_without_reorthonormalisation_float32_drifts():
     """The check above can fail: switch the re-orthonormalisation off and float32 rotations drift."""
     actions = np.random.default_rng(0).uniform(-1, 1, (20_000, 1, 4))
     e = _tumble_env("float32", reortho=10 ** 9)
-    worst = _tumble(actions, e._pos, e._vel, e._rot, e._omega, e._motor, e._ou, e._goal, e._contact,
-                    e._room_contact, e._rng, e._step_count, e._fp, e._ip, e._obs, e._rew, e._terms, e._done,
-                    e._diverged, e._acc)
+    worst = _tumble(actions, e._state, e._fp, e._ip, e._out, e._acc)
     assert worst > 2e-6
 
 

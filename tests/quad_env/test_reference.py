@@ -3,9 +3,9 @@ collision forms of the reward."""
 import numpy as np
 import pytest
 
-from quad_env import VecQuadEnv
-from quad_env.params import KERNEL_TERMS
-from quad_env.kernels import NUM_ACC, step_kernel
+from quad_env import REWARD_TERMS, VecQuadEnv
+from quad_env.params import KERNEL_TERMS, T_COLLISION, T_FLOOR, T_PROXIMITY, T_TILT
+from quad_env.kernels import NUM_ACC, StepOutput, SwarmState, step_kernel
 from quad_env.reference import reference_step
 
 
@@ -43,9 +43,11 @@ def kernel_step(env, state, actions, step_count, contact):
     contact = contact.copy()
     steps = step_count.copy()
     obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((KERNEL_TERMS, M))
-    step_kernel(actions, s["pos"], s["vel"], s["rot"], s["omega"], s["motor"], ou, s["goal"], contact,
-                np.zeros(M, np.uint8), env._rng.copy(), steps, env._fp_quiet, env._ip_quiet, obs, rew, terms,
-                np.zeros(E, bool), np.zeros(E, bool), np.zeros((E, NUM_ACC)))
+    state = SwarmState(pos=s["pos"], vel=s["vel"], rot=s["rot"], omega=s["omega"], motor=s["motor"], ou=ou,
+                       goal=s["goal"], contact=contact, room_contact=np.zeros(M, np.uint8), rng=env._rng.copy(),
+                       step_count=steps)
+    out = StepOutput(obs=obs, rew=rew, terms=terms, done=np.zeros(E, bool), diverged=np.zeros(E, bool))
+    step_kernel(actions, state, env._fp_quiet, env._ip_quiet, out, np.zeros((E, NUM_ACC)))
     return s, obs, rew, terms, contact
 
 
@@ -135,3 +137,43 @@ def test_reference_catches_a_wrong_kernel_constant(quiet_cfg):
     ks, *_ = kernel_step(env, state, actions, np.zeros(1, np.int64), contact)
     rs, *_ = reference_step(state, actions, heavier, np.zeros(1, np.int64), contact)
     assert np.abs(ks["vel"] - rs["vel"]).max() > 1e-6
+
+
+@pytest.mark.parametrize("form", ["paper", "pairwise"])
+def test_a_seeded_episode_sums_the_reference_terms(quiet_cfg, form):
+    """A fixed-seed episode through ``VecQuadEnv.step`` (the kernels' argument bundles, as in training): at every
+    step the reward terms equal the float64 reference recomputed from the state before it, and the episode's
+    per-term sums (``rew_<term>``) equal the sums of the reference's terms. A swapped kernel argument fails."""
+    cfg = quiet_cfg(num_agents=6, num_neighbors=3, sim_dtype="float64", episode_duration=0.6,  # 60 steps: reortho
+                    reward=dict(collision_form=form, floor=1.5, tilt=0.8))
+    E, N = 2, cfg.num_agents
+    env = VecQuadEnv(cfg, num_envs=E, seed=11)
+    rng = np.random.default_rng(5)
+    start = random_state(rng, E, N)  # packed: proximity, downwash, walls and floor
+    for b in range(0, E * N, N):  # drones 0 and 1 approach, not yet touching: a new collision
+        start["pos"][b + 1] = start["pos"][b] + 3.0 * (start["pos"][b + 1] - start["pos"][b])
+    env.set_state(**start)
+    sums = np.zeros((KERNEL_TERMS, E))
+    names = REWARD_TERMS[:KERNEL_TERMS]
+    for t in range(cfg.episode_steps):
+        s = env.get_state()
+        before = dict(pos=s.pos, vel=s.vel, rot=s.rot, omega=s.omega, motor=s.motor, goal=s.goal)
+        actions = rng.uniform(-1.2, 1.2, (E * N, 4))
+        rs, _, rrew, rterms, _ = reference_step(before, actions, cfg, env._step_count.copy(), env._contact.copy())
+        _, rew, _, truncated = env.step(actions)
+        terms = np.stack([env.reward_terms[name] for name in names])  # float32 buffers
+        np.testing.assert_allclose(terms, rterms, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(rew, rrew, rtol=1e-6, atol=1e-6)
+        assert (env.reward_terms["crash"] == 0).all()
+        if not truncated.any():  # (the last step auto-resets the swarms)
+            np.testing.assert_allclose(env.get_state().pos, rs["pos"], rtol=0, atol=1e-9)
+        sums += rterms.reshape(KERNEL_TERMS, E, N).sum(2)
+    stats = env.pop_episode_stats()
+    assert len(stats) == E and truncated.all()
+    for e, st in enumerate(stats):
+        for k, name in enumerate(names):
+            assert st[f"rew_{name}"] == pytest.approx(sums[k, e] / N, rel=1e-6, abs=1e-9), name
+        assert st["rew_crash"] == 0.0
+        assert st["return"] == pytest.approx(sums[:, e].sum() / N, rel=1e-6)
+    for term in (T_COLLISION, T_PROXIMITY, T_FLOOR, T_TILT):  # the run exercises the event terms
+        assert (sums[term] < 0).any(), names[term]
