@@ -264,7 +264,8 @@ def main(argv=None) -> None:
         *([f"- conditions: {args.note}"] if args.note else []),
         f"- config: quickstart (DeepSets 64, N = 8, 16 swarms x 8 drones per worker, T = 128, batch 2048, "
         f"2 epochs), {args.seconds:.0f} s of training per row, {args.repeats} repeat(s) interleaved, figures after "
-        f"a 30% warm-up; cores used = mean busy cores of this run's processes / of all other processes over the same steady window (/proc); one node = a local "
+        f"a 30% warm-up; cores used = mean busy cores of this run's processes / of all other processes over the "
+        f"same steady window (/proc); one node = a local "
         f"Ray with max(actors) + 1 logical CPUs; two nodes = launchers.local_cluster (2 Ray nodes x "
         f"{args.cpus_per_node:g} logical CPUs, own object stores, loopback) + launchers.ray_cluster submit",
         "- fetch = the learner's ray.get of a ready fragment (copy between object stores when made on the other "

@@ -17,7 +17,8 @@ def count(module) -> int:
 
 
 def table(layout: ObsLayout) -> str:
-    header = f"{'encoder':<15} {'out_dim':>7} {'representation':>14} {'encoder':>11} {'actor-critic':>13} {'(shared)':>11}"
+    header = (f"{'encoder':<15} {'out_dim':>7} {'representation':>14} {'encoder':>11} {'actor-critic':>13} "
+              f"{'(shared)':>11}")
     lines = [f"parameters for {layout!r}", header, "-" * len(header)]
     for name in ENCODERS:
         enc = make_encoder(name, layout)

@@ -37,7 +37,8 @@ def test_kattention_matches_numpy():
             e = np.stack([dense(P, "net.embed", np.concatenate([own, o_j])) for o_j in nb])
             h = np.stack([dense(P, "net.value", e_j) for e_j in e])
             e_mean = e.mean(0)
-            score_hidden = [dense(P, "net.score", np.concatenate([e_j, e_mean]), layers=2) for e_j in e]  # 2 tanh layers
+            # 2 tanh layers
+            score_hidden = [dense(P, "net.score", np.concatenate([e_j, e_mean]), layers=2) for e_j in e]
             scores = np.array([P["net.score.4.weight"] @ sh + P["net.score.4.bias"] for sh in score_hidden])[:, 0]
             w = np.exp(scores - scores.max())
             neighborhood = (w / w.sum()) @ h

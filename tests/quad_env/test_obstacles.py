@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from quad_env import EnvConfig, RewardConfig, VecQuadEnv, make_scenario
-from quad_env.params import KERNEL_TERMS
+from quad_env.params import KERNEL_TERMS, pack_params
 from quad_env.kernels import (
     NUM_ACC, NUM_AGENT_ACC, EpisodeMetrics, Obstacles, StepOutput, SwarmState, step_with_metrics_kernel,
 )
@@ -98,8 +98,8 @@ def test_a_drone_pressing_on_a_cylinder_is_one_contact_and_a_second_approach_ano
         s = env.simulate(env.hover_action)
         coll.append(env.reward_terms["collision"][0])
         assert axis_distance(s.pos[0]) >= CONTACT - 1e-12
-    assert env._obst_contact[0] == 1 and axis_distance(s.pos[0]) < CONTACT + 0.01  # still pressing on it
-    assert env.episode_stats(0)["obstacle_collisions"] == 1
+    assert axis_distance(s.pos[0]) < CONTACT + 0.01  # still pressing on it, after 50 steps ...
+    assert env.episode_stats(0)["obstacle_collisions"] == 1  # ... counted as one contact (one onset), not 50
     np.testing.assert_allclose(sorted(coll)[:2], [-2.0, 0.0], rtol=1e-6)  # reward.obstacle_collision, once
     # fly away level, then at the other side of the cylinder: a new contact
     fly_at(env, [1.5, 0.5, 5.0], [-3.0, 0.0, 0.0])
@@ -151,11 +151,11 @@ def test_kernel_matches_the_numpy_reference_with_obstacles(quiet_cfg, steps_done
         kcontact, kobst = contact.copy(), prev_contact.copy()
         kstate = SwarmState(pos=s["pos"], vel=s["vel"], rot=s["rot"], omega=s["omega"], motor=s["motor"],
                             ou=np.zeros((M, 4)), goal=s["goal"], contact=kcontact, room_contact=np.zeros(M, np.uint8),
-                            rng=env._rng.copy(), step_count=np.full(E, steps_done, np.int64))
+                            rng=seed_streams(0, E), step_count=np.full(E, steps_done, np.int64))
         out = StepOutput(obs=obs, rew=rew, terms=terms, done=np.zeros(E, bool), diverged=np.zeros(E, bool))
         metrics = EpisodeMetrics(acc=np.zeros((E, NUM_ACC)), agent_acc=np.zeros((M, NUM_AGENT_ACC)),
                                  jumped=np.zeros(E, np.uint8))
-        step_with_metrics_kernel(actions, kstate, env._fp_quiet, env._ip_quiet, out, metrics,
+        step_with_metrics_kernel(actions, kstate, *pack_params(cfg, D, noise=False), out, metrics,
                                  Obstacles(grid=grid, index=obstacle_index(grid, cfg), contact=kobst))
         rs, robs, rrew, rterms, rcontact, robst = reference_step_obstacles(
             state, actions, cfg, np.full(E, steps_done), contact, grid, prev_contact)

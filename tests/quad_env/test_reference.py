@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from quad_env import REWARD_TERMS, VecQuadEnv
-from quad_env.params import KERNEL_TERMS, T_COLLISION, T_FLOOR, T_PROXIMITY, T_TILT
+from quad_env.params import KERNEL_TERMS, T_COLLISION, T_FLOOR, T_PROXIMITY, T_TILT, pack_params
 from quad_env.kernels import NUM_ACC, StepOutput, SwarmState, step_kernel
 from quad_env.reference import reference_step
+from quad_env.rng import seed_streams
 
 
 def random_rotations(rng, m):
@@ -36,18 +37,20 @@ def random_state(rng, E, N):
 
 
 def kernel_step(env, state, actions, step_count, contact):
-    """Run the kernel on float64 copies with float64 output buffers."""
+    """Run the kernel on float64 copies with float64 output buffers, with the env config's parameters and every
+    noise source off (``pack_params(..., noise=False)``: the random streams are then never read)."""
     s = {k: v.copy() for k, v in state.items()}
     M, D, E = env.num_drones, env.obs_dim, env.num_envs
+    fp, ip = pack_params(env.cfg, D, noise=False)
     ou = np.zeros((M, 4))
     contact = contact.copy()
     steps = step_count.copy()
     obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((KERNEL_TERMS, M))
     state = SwarmState(pos=s["pos"], vel=s["vel"], rot=s["rot"], omega=s["omega"], motor=s["motor"], ou=ou,
-                       goal=s["goal"], contact=contact, room_contact=np.zeros(M, np.uint8), rng=env._rng.copy(),
+                       goal=s["goal"], contact=contact, room_contact=np.zeros(M, np.uint8), rng=seed_streams(0, E),
                        step_count=steps)
     out = StepOutput(obs=obs, rew=rew, terms=terms, done=np.zeros(E, bool), diverged=np.zeros(E, bool))
-    step_kernel(actions, state, env._fp_quiet, env._ip_quiet, out, np.zeros((E, NUM_ACC)))
+    step_kernel(actions, state, fp, ip, out, np.zeros((E, NUM_ACC)))
     return s, obs, rew, terms, contact
 
 
@@ -139,6 +142,14 @@ def test_reference_catches_a_wrong_kernel_constant(quiet_cfg):
     assert np.abs(ks["vel"] - rs["vel"]).max() > 1e-6
 
 
+def touching_pairs(pos, E, N, dist):
+    """uint8 [E, N, N]: 1 for the pairs a < b whose centres are within ``dist`` (the contact memory the step kernel
+    keeps: it is set from the positions at the end of each step, and by set_state)."""
+    p = pos.reshape(E, N, 3)
+    d2 = ((p[:, None, :, :] - p[:, :, None, :]) ** 2).sum(-1)  # [E, a, b]: (x_b - x_a)^2 + ..., x first, as the kernel
+    return ((d2 <= dist * dist) & np.triu(np.ones((N, N), bool), 1)).astype(np.uint8)
+
+
 @pytest.mark.parametrize("form", ["paper", "pairwise"])
 def test_a_seeded_episode_sums_the_reference_terms(quiet_cfg, form):
     """A fixed-seed episode through ``VecQuadEnv.step`` (the kernels' argument bundles, as in training): at every
@@ -159,7 +170,9 @@ def test_a_seeded_episode_sums_the_reference_terms(quiet_cfg, form):
         s = env.get_state()
         before = dict(pos=s.pos, vel=s.vel, rot=s.rot, omega=s.omega, motor=s.motor, goal=s.goal)
         actions = rng.uniform(-1.2, 1.2, (E * N, 4))
-        rs, _, rrew, rterms, _ = reference_step(before, actions, cfg, env._step_count.copy(), env._contact.copy())
+        step_count = np.full(E, t, np.int64)  # steps since the reset (set_state keeps the clock)
+        rs, _, rrew, rterms, _ = reference_step(before, actions, cfg, step_count,
+                                                touching_pairs(s.pos, E, N, cfg.physics.collision_dist))
         _, rew, _, truncated = env.step(actions)
         terms = np.stack([env.reward_terms[name] for name in names])  # float32 buffers
         np.testing.assert_allclose(terms, rterms, rtol=1e-6, atol=1e-7)

@@ -45,7 +45,8 @@ def test_crash_is_charged_once_per_landing_without_respawn(quiet_cfg):
     assert np.allclose(pos[-1, 0, 2], 0.046)
     stats = env.episode_stats(0)
     assert stats["rew_crash"] == -1.0  # -3 shared by 3 agents (per-agent mean)
-    np.testing.assert_allclose(sum(stats[f"rew_{k}"] for k in REWARD_TERMS), stats["return"], rtol=1e-6)  # float32 per-step rewards
+    # (float32 per-step rewards)
+    np.testing.assert_allclose(sum(stats[f"rew_{k}"] for k in REWARD_TERMS), stats["return"], rtol=1e-6)
 
 
 def test_return_includes_the_crash_penalty(quiet_cfg):
@@ -63,7 +64,7 @@ def test_respawn_puts_the_drone_back_in_the_spawn_box(quiet_cfg):
     center = env._center[0].copy()  # the scenario's spawn centre of swarm 0
     landed_at = None
     for t in range(20):
-        env.step(OFF)
+        obs_now = env.step(OFF)[0].copy()
         if env.reward_terms["crash"][0] != 0:
             landed_at = t
             break
@@ -76,7 +77,6 @@ def test_respawn_puts_the_drone_back_in_the_spawn_box(quiet_cfg):
     assert (s.vel[0] == 0).all() and (s.omega[0] == 0).all() and (s.motor[0] == 0).all()
     np.testing.assert_allclose(s.rot[0][2], [0, 0, 1], atol=1e-12)  # level, random yaw
     # the step's observation already shows the respawned state (no sensor noise here)
-    obs_now = env._obs.copy()
     np.testing.assert_array_equal(obs_now, env.observe())
     np.testing.assert_allclose(obs_now[0, :3], p - [0, 0, 2.0], rtol=0, atol=1e-6)  # rel_goal = x - goal
     assert env.episode_stats(0)["respawns"] == 1

@@ -12,7 +12,8 @@ ALL = ("static_same_goal", "static_diff_goal", "dynamic_same_goal", "dynamic_dif
 
 def test_registry_lists_the_scenarios_and_rejects_unknown_names():
     assert SCENARIOS == ALL
-    with pytest.raises(ValueError, match=r"unknown scenario 'swarm_vs'; valid: \['dynamic_diff_goal', .*'swarm_vs_swarm'\]"):
+    unknown = r"unknown scenario 'swarm_vs'; valid: \['dynamic_diff_goal', .*'swarm_vs_swarm'\]"
+    with pytest.raises(ValueError, match=unknown):
         make_scenario("swarm_vs", EnvConfig())
     with pytest.raises(ValueError, match="already registered"):
         @register_scenario
