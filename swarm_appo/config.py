@@ -203,6 +203,13 @@ class RunnerConfig:
     final_eval_episodes: int = 8
     """At the end of a run, evaluate the mean-action policy and a random policy on this many seeded
     episodes (``eval/*``, ``eval_random/*`` metrics); 0 = skip."""
+    init_checkpoint: Optional[str] = None
+    """Start this (new) run from the policy of a checkpoint: a file, or a run directory (its newest valid
+    checkpoint). The network's weights, including its observation normaliser, are loaded; the optimizer, the
+    counters (agent steps from 0), the lr and reward schedules and the history start afresh, in this run's own
+    directory. For training stages (a new reward, scenario or budget on a trained policy) without touching the
+    first run. The model must fit (the same ``model`` options and observation layout): checked before the run
+    directory is made. A resumed run continues from its own checkpoints and ignores this."""
 
 
 @dataclass
@@ -579,6 +586,10 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check(r.precision in PRECISIONS, "runner.precision", f"must be one of {list(PRECISIONS)}", r.precision)
     _check(r.inference_precision in PRECISIONS, "runner.inference_precision", f"must be one of {list(PRECISIONS)}",
            r.inference_precision)
+    if r.init_checkpoint is not None:  # (whether it exists and fits is the trainer's check: a run's saved config
+        # is also read where the file is gone, by evaluation and export)
+        _check(bool(str(r.init_checkpoint).strip()), "runner.init_checkpoint",
+               "must be a checkpoint file or run directory, or null", r.init_checkpoint)
     _check(w.mode in WANDB_MODES, "wandb.mode", f"must be one of {list(WANDB_MODES)}", w.mode)
     _check(bool(w.project), "wandb.project", "must not be empty", w.project)
     return cfg

@@ -138,6 +138,43 @@ def remove_failed_start(run_dir: Path, existed_before: Optional[set]) -> None:
     log.warning("the run failed to start; removed what it had written to %s", run_dir)
 
 
+def init_policy(cfg: TrainConfig) -> TrainingState:
+    """The checkpoint ``runner.init_checkpoint`` names, checked to fit ``cfg``: the same ``model`` options (but for
+    the ``init_*`` ones, which only set a fresh network's initial values) and weights that load into this run's
+    network. Every problem is a ConfigError naming the key."""
+    from swarm_appo.checkpoint import CheckpointCorruptError
+
+    path = Path(cfg.runner.init_checkpoint)
+    key = "runner.init_checkpoint"
+    try:
+        if path.is_dir():
+            state, _ = TrainingState.load_latest(path)
+            if state is None:
+                raise ConfigError(f"{key}: no valid checkpoint in {path / 'checkpoints'}")
+        elif path.is_file():
+            state = TrainingState.load(path)
+        else:
+            raise ConfigError(f"{key}: {path} does not exist (give a checkpoint file or a run directory)")
+    except CheckpointCorruptError as exc:
+        raise ConfigError(f"{key}: {exc}") from exc
+    try:  # (through the config loader: keys an older checkpoint lacks take their defaults)
+        theirs = config_to_dict(config_from_dict(state.config))["model"]
+    except ConfigError as exc:
+        raise ConfigError(f"{key}: the config saved in {path} does not load: {exc}") from exc
+    ours = config_to_dict(cfg)["model"]
+    differ = [f"model.{k}: {theirs.get(k)!r} there, {ours[k]!r} here" for k in ours
+              if not k.startswith("init_") and theirs.get(k) != ours[k]]
+    if differ:
+        raise ConfigError(f"{key}: the policy of {path} was trained with other model options: {'; '.join(differ)}")
+    try:
+        model_factory(cfg.env.obs_layout(), cfg.model)().load_state_dict(state.learner["model"])
+    except (RuntimeError, KeyError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(f"{key}: the weights of {path} do not fit this run's network (its observation layout: "
+                          f"env.num_neighbors, env.neighbor_obs, env.obstacles?): {first}") from exc
+    return state
+
+
 def pick_device(name: str) -> torch.device:
     """The learner's device for ``runner.device``; ConfigError (before any run directory exists) if it is absent."""
     if name == "auto":
@@ -330,6 +367,8 @@ class Trainer:
                 log.info("resuming %s from %s", run_dir, ckpt_path)
         assert cfg is not None, "train() needs a config or a run directory to resume"
         validate(cfg)
+        # A fresh run may start from another run's policy; whether it fits is checked before a run dir exists.
+        init_state = init_policy(cfg) if resume_dir is None and cfg.runner.init_checkpoint else None
         if cfg.runner.ray_address is not None and not cfg.runner.serial:
             check_reachable(cfg.runner.ray_address)  # before a run dir exists: a typo leaves nothing behind
         self.device = pick_device(cfg.runner.device)
@@ -360,6 +399,11 @@ class Trainer:
             self.learner.load_state_dict(state.learner)
             self.agent_steps = state.agent_steps
             restore_rng_states(state.rng)
+        elif init_state is not None:
+            self.learner.model.load_state_dict(init_state.learner["model"])
+            log.info("initialised from %s (%s agent steps of run %s); optimizer, counters and schedules start afresh",
+                     cfg.runner.init_checkpoint, f"{init_state.agent_steps:,}",
+                     init_state.config.get("runner", {}).get("name"))
 
         # Compile the numba kernels once here, so workers load them from the on-disk cache.
         VecQuadEnv(cfg.env, num_envs=1, seed=0).step(np.zeros((cfg.env.num_agents, 4), np.float32))
