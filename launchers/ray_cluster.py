@@ -363,6 +363,8 @@ def cmd_run(args) -> int:
     root = cluster_run_root(cfg.runner.run_dir)
     run_dir = fresh_run_dir(root, cfg.runner.name or time.strftime("run_%Y%m%d_%H%M%S"))
     cfg.runner.run_dir, cfg.runner.name = str(root), run_dir.name
+    if cfg.runner.init_checkpoint:  # where the run directories are: relative to the home directory, as run_dir
+        cfg.runner.init_checkpoint = str(cluster_run_root(cfg.runner.init_checkpoint))
     print(f"run directory: {run_dir} (on {socket.gethostname()})", flush=True)
     stop_on_sigterm()
     try:

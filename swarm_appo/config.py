@@ -209,7 +209,8 @@ class RunnerConfig:
     counters (agent steps from 0), the lr and reward schedules and the history start afresh, in this run's own
     directory. For training stages (a new reward, scenario or budget on a trained policy) without touching the
     first run. The model must fit (the same ``model`` options and observation layout): checked before the run
-    directory is made. A resumed run continues from its own checkpoints and ignores this."""
+    directory is made. A resumed run continues from its own checkpoints and ignores this. A job submitted with
+    ``launchers.ray_cluster`` resolves a relative path like ``run_dir``: against the learner node's home."""
 
 
 @dataclass
