@@ -33,7 +33,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 from benchmarks.common import ROOT, load_average, publish, section_header
 
@@ -253,9 +253,22 @@ def soak_phase(root: Path, minutes: float) -> Dict[str, float]:
         time.sleep(30)
         samples.append(((time.monotonic() - start) / 60, rss_mb(proc.pid)))
     stop(proc)
-    after5 = [mb for minute, mb in samples if minute >= 5] or [mb for _, mb in samples]
-    return {"soak_minutes": minutes, "rss_mb_at_5min": after5[0], "rss_mb_end": after5[-1],
-            "rss_growth_pct": 100 * (after5[-1] / after5[0] - 1)}
+    return {"soak_minutes": minutes, **rss_growth(samples, minutes)}
+
+
+def rss_growth(samples: List[Tuple[float, float]], minutes: float) -> Dict[str, float]:
+    """RSS growth from minute 5 to the end of a soak, from (minute, MB) samples. A learner's RSS swings by
+    10-30 % with the fragments it holds at a given moment, so besides the single samples at minute 5 and at the
+    end the growth is measured between the medians of the first five minutes after minute 5 and of the last
+    five minutes (``rss_growth_pct``)."""
+    after5 = [(m, mb) for m, mb in samples if m >= 5] or list(samples)
+    first = [mb for m, mb in after5 if m < after5[0][0] + 5]
+    last = [mb for m, mb in after5 if m >= max(after5[-1][0] - 5, after5[0][0])]
+    median = lambda xs: float(sorted(xs)[len(xs) // 2])  # noqa: E731
+    return {"rss_mb_at_5min": after5[0][1], "rss_mb_end": after5[-1][1],
+            "rss_growth_endpoints_pct": 100 * (after5[-1][1] / after5[0][1] - 1),
+            "rss_mb_median_first_5min": median(first), "rss_mb_median_last_5min": median(last),
+            "rss_growth_pct": 100 * (median(last) / median(first) - 1)}
 
 
 def main(argv=None) -> int:
