@@ -185,17 +185,29 @@ def kill9_phase(root: Path, kills: int, rng: random.Random) -> Dict[str, int]:
         counts["intact"] += checkpoints_intact(run_dir)
         expected = newest_step(run_dir)
         seen = log.read_text() if log.exists() else ""
+        killed_id = wandb_id(run_dir)  # the killed run's wandb run (None if it was killed before making one)
         proc = launch(root, "kill9", [], resume=True)
         # what the resumed run says it continues from: the newest valid checkpoint, or a fresh start at 0
         want = f"from {checkpoint_path(run_dir, expected)}" if expected else "starting it afresh at step 0"
         counts["correct_resumes"] += wait_for(lambda: want in log.read_text()[len(seen):], 120.0, 0.2)
     # the last resume runs until it has trained an iteration past its checkpoint, then stops cleanly (a stop
-    # earlier, before its wandb run exists, would leave the killed run's wandb file as the newest)
+    # earlier, before its wandb run exists, would leave the killed run's wandb file as the newest). Records past
+    # the checkpoint that the killed run wrote do not count: only once the resumed run's own wandb run exists
+    # (a new id in wandb_id.txt) has it trimmed metrics.jsonl to its checkpoint.
     resumed_from = newest_step(run_dir)
-    wait_for(lambda: any(r.get("global_step", 0) > resumed_from for r in _records(run_dir)), 180.0, 0.5)
+    wait_for(lambda: wandb_id(run_dir) not in (None, killed_id)
+             and any(r.get("global_step", 0) > resumed_from for r in _records(run_dir)), 180.0, 0.5)
     stop(proc)
     counts.update(history_faults(run_dir))
     return counts
+
+
+def wandb_id(run_dir: Path):
+    """The id in the run's wandb_id.txt (the newest wandb run), or None."""
+    try:
+        return (run_dir / "wandb_id.txt").read_text().strip() or None
+    except OSError:
+        return None
 
 
 def _records(run_dir: Path) -> List[dict]:
