@@ -639,44 +639,28 @@ def reward_coefficients(fp, ip):
 
 
 @njit(cache=True, inline="always")
-def reward_terms(i, a, dist, z, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, coef, terms):
-    """Drone ``i``'s reward terms (true state, not the noisy observation): written to ``terms[T_<term>, i]``
-    (rows as ``REWARD_TERMS``); returns their sum. ``a``: the drone's index in its swarm (``coll_pen``,
-    ``new_obst``, ``prox``: see ``observe_swarm``); ``dist``: its distance to goal, ``z`` its height;
-    ``nb_d2[:found]``: squared distances to its observed neighbours (the "paper" proximity sum); ``coef``: the
-    swarm's ``reward_coefficients``.
-    A new term: its name in ``REWARD_TERMS``, its formula here (and in the sum), its weight in
-    ``reward_coefficients``, its float64 twin in ``quad_env.reference``, its coefficient in ``RewardConfig``
-    (packed by ``pack_params``)."""
+def reward_terms(dist, z, wx, wy, wz, u0, u1, u2, u3, r_zz, coll_pen, new_obst, prox, near, coef):
+    """One drone's reward terms from scalars of its true state (not the noisy observation), in the order of
+    ``REWARD_TERMS`` (all but "crash"): ``dist`` to goal, height ``z``, body rates ``w*``, raw action ``u*``
+    (clipped here), ``r_zz`` = R[2, 2] (cos tilt), its new-contact penalty count ``coll_pen`` and new obstacle
+    contacts ``new_obst``, and its proximity sums: ``prox`` over every other drone ("pairwise" form) and ``near``
+    over its observed neighbours ("paper" form); ``coef``: the swarm's ``reward_coefficients``. Scalars only: array
+    arguments would cost reference counting per drone.
+    A new term: its name in ``REWARD_TERMS``, its formula here, its weight in ``reward_coefficients``, its float64
+    twin in ``quad_env.reference``, its coefficient in ``RewardConfig`` (packed by ``pack_params``)."""
     c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, dp, prox_nb = coef
-    dp2 = dp * dp
-    wx, wy, wz = omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0
-    u0 = min(max(action[i, 0] * 1.0, -1.0), 1.0)
-    u1 = min(max(action[i, 1] * 1.0, -1.0), 1.0)
-    u2 = min(max(action[i, 2] * 1.0, -1.0), 1.0)
-    u3 = min(max(action[i, 3] * 1.0, -1.0), 1.0)
+    u0 = min(max(u0, -1.0), 1.0)
+    u1 = min(max(u1, -1.0), 1.0)
+    u2 = min(max(u2, -1.0), 1.0)
+    u3 = min(max(u3, -1.0), 1.0)
     r_pos = -c_pos * dist
-    r_coll = -c_coll * coll_pen[a] - c_obst * new_obst[a]
-    if prox_nb:  # proximity over the observed neighbours only
-        near = 0.0
-        for k in range(found):
-            if nb_d2[k] < dp2:
-                near += 1.0 - np.sqrt(nb_d2[k]) / dp
-        r_prox = -c_prox * near
-    else:
-        r_prox = -c_prox * prox[a]
+    r_coll = -c_coll * coll_pen - c_obst * new_obst
+    r_prox = -c_prox * (near if prox_nb else prox)
     r_omega = -c_omega * np.sqrt(wx * wx + wy * wy + wz * wz)
     r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
     r_floor = -c_floor if z <= floor_z else 0.0
-    r_tilt = -c_tilt * (1.0 - rot[i, 2, 2])
-    terms[T_POS, i] = r_pos
-    terms[T_COLLISION, i] = r_coll
-    terms[T_PROXIMITY, i] = r_prox
-    terms[T_OMEGA, i] = r_omega
-    terms[T_ACTION, i] = r_act
-    terms[T_FLOOR, i] = r_floor
-    terms[T_TILT, i] = r_tilt
-    return r_pos + r_coll + r_prox + r_omega + r_act + r_floor + r_tilt  # (this order: bit-reproducible)
+    r_tilt = -c_tilt * (1.0 - r_zz)
+    return r_pos, r_coll, r_prox, r_omega, r_act, r_floor, r_tilt
 
 
 @njit(cache=True)
@@ -801,8 +785,17 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
                 row[q] = 0.0  # an obstacle layout with obstacles switched off (kernel tests) reads zeros
 
         if with_reward:
-            rew[i] = reward_terms(i, a, dist, zi, omega, action, rot, coll_pen, new_obst, prox, nb_d2, found, coef,
-                                  terms)
+            near = 0.0  # the "paper" proximity sum: over the observed neighbours (the K nearest, in range)
+            dp = coef[9]
+            for k in range(found):
+                if nb_d2[k] < dp * dp:
+                    near += 1.0 - np.sqrt(nb_d2[k]) / dp
+            r = reward_terms(dist, zi, omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0, action[i, 0] * 1.0,
+                             action[i, 1] * 1.0, action[i, 2] * 1.0, action[i, 3] * 1.0, rot[i, 2, 2] * 1.0,
+                             coll_pen[a], new_obst[a], prox[a], near, coef)
+            terms[T_POS, i], terms[T_COLLISION, i], terms[T_PROXIMITY, i] = r[0], r[1], r[2]
+            terms[T_OMEGA, i], terms[T_ACTION, i], terms[T_FLOOR, i], terms[T_TILT, i] = r[3], r[4], r[5], r[6]
+            rew[i] = r[0] + r[1] + r[2] + r[3] + r[4] + r[5] + r[6]  # (this order: bit-reproducible)
     return dist_sum / n_agents
 
 
