@@ -15,6 +15,7 @@ This is a measurement, not a timing: it may run while other work shares the core
 from __future__ import annotations
 
 import argparse
+import os
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -139,7 +140,12 @@ def report(r: Dict) -> str:
 def main(argv=None) -> Dict:
     import datetime
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error("--episodes must be >= 1")
+    if not os.path.exists(args.checkpoint):
+        parser.error(f"--checkpoint: {args.checkpoint} does not exist (give a checkpoint file or a run directory)")
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     r = anatomy(args.checkpoint, args.episodes, args.seed, args.scenario)
     header = section_header("collision_anatomy", started, argv, ["quad_env", "swarm_appo", "encoders"], load_before)

@@ -786,10 +786,11 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
 
         if with_reward:
             near = 0.0  # the "paper" proximity sum: over the observed neighbours (the K nearest, in range)
-            dp = coef[9]
-            for k in range(found):
-                if nb_d2[k] < dp * dp:
-                    near += 1.0 - np.sqrt(nb_d2[k]) / dp
+            if coef[10]:  # (the "pairwise" form uses prox instead)
+                dp = coef[9]
+                for k in range(found):
+                    if nb_d2[k] < dp * dp:
+                        near += 1.0 - np.sqrt(nb_d2[k]) / dp
             r = reward_terms(dist, zi, omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0, action[i, 0] * 1.0,
                              action[i, 1] * 1.0, action[i, 2] * 1.0, action[i, 3] * 1.0, rot[i, 2, 2] * 1.0,
                              coll_pen[a], new_obst[a], prox[a], near, coef)

@@ -29,3 +29,12 @@ def test_nearest_neighbour_matches_a_brute_force_loop():
         for a in range(N):
             others = [np.linalg.norm(pos[e * N + a] - pos[e * N + b]) for b in range(N) if b != a]
             assert np.isclose(got[e * N + a], min(others))
+
+
+def test_a_missing_checkpoint_is_a_usage_error(tmp_path, capsys):
+    import pytest
+
+    from benchmarks.collision_anatomy import main
+    with pytest.raises(SystemExit) as info:
+        main(["--checkpoint", str(tmp_path / "no_run")])
+    assert info.value.code == 2 and "does not exist" in capsys.readouterr().err
