@@ -13,9 +13,12 @@ deserialising it), so the trainer can report the cost of moving fragments betwee
 
 The Ray sampler bounds the fragments in flight (backpressure): at most ``max_in_flight`` rollout
 calls are outstanding, so workers idle rather than run ahead of a slow learner, which bounds policy lag.
-Weights go through a small ``WeightsStore`` actor that holds the reference of the newest version: a
-worker asks it at the *start* of every fragment, so a call that waited in an actor's queue still acts
-with the newest weights (passing the weights with the call would freeze the version at submission).
+Weights go through a small ``WeightsStore`` actor that holds the newest version itself: a worker asks
+it at the *start* of every fragment, so a call that waited in an actor's queue still acts with the
+newest weights (passing the weights with the call would freeze the version at submission). The store
+holds values, not object references: an ObjectRef handed to an actor inside a container is a borrowed
+reference, and Ray's owner-side bookkeeping of borrowed references grew the learner by ~1 KB per
+published version (benchmarks/RESULTS.md, "reliability": a 1-hour soak grew 13 % that way).
 """
 from __future__ import annotations
 
@@ -73,15 +76,20 @@ class SerialSampler:
 
 @ray.remote(num_cpus=0)
 class WeightsStore:
-    """Holds ``(version, [object ref])`` of the newest published weights (the list keeps the ref unresolved)."""
+    """Holds the newest published ``(version, state_dict, env_schedule)`` and hands it to workers that lack it."""
 
     def __init__(self):
-        self._latest = (-1, [None])
+        self._latest: Optional[Weights] = None
 
-    def set(self, version: int, ref_list: list) -> None:
-        self._latest = (version, ref_list)
+    def set(self, version: int, state_dict: Dict[str, torch.Tensor],
+            env_schedule: Optional[Dict[str, float]]) -> None:
+        self._latest = (version, state_dict, env_schedule)
 
-    def latest(self):
+    def newer_than(self, version: int) -> Optional[Weights]:
+        """The newest weights if their version differs from ``version`` (the caller's), else None: a worker
+        that is up to date receives a few bytes, not the weights."""
+        if self._latest is None or self._latest[0] == version:
+            return None
         return self._latest
 
 
@@ -107,9 +115,9 @@ class RayRolloutWorker(RolloutWorker):
         return self.location()
 
     def collect_latest(self) -> Dict[str, Any]:
-        version, (ref,) = ray.get(self.store.latest.remote())
-        if ref is not None and version != self.policy_version:
-            self.set_weights(*ray.get(ref))
+        weights = ray.get(self.store.newer_than.remote(self.policy_version))
+        if weights is not None:
+            self.set_weights(*weights)
         fragment = self.collect()
         fragment["node_id"] = self.node_id
         return fragment
@@ -169,8 +177,8 @@ class RaySampler:
                 env_schedule: Optional[Dict[str, float]] = None) -> None:
         """The weights of ``version``, with the environment values of the training schedule at this point
         (``RolloutWorker.set_weights``); workers pick them up before their next fragment."""
-        ref = ray.put((version, state_dict, env_schedule))  # one object per version, shared by all workers
-        ray.get(self._store.set.remote(version, [ref]))
+        # Waiting for the store keeps the order: a fragment started after publish() returns acts with this version.
+        ray.get(self._store.set.remote(version, state_dict, env_schedule))
 
     def _fill(self) -> None:
         """Keep every worker busy, round-robin, up to the in-flight bound."""

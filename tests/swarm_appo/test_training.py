@@ -18,7 +18,7 @@ from swarm_appo.learner import Learner, stack_fragments
 from swarm_appo.metrics import wait_for_wandb_history
 from swarm_appo.model import model_factory
 from swarm_appo.rollout import RolloutWorker
-from swarm_appo.sampling import RaySampler, init_local_ray
+from swarm_appo.sampling import RaySampler, WeightsStore, init_local_ray
 from swarm_appo.trainer import train
 from swarm_appo.vtrace import vtrace
 
@@ -366,5 +366,32 @@ def test_ray_workers_collect_with_the_published_scale(tmp_path, local_ray):
         # the first fragments may have been requested before the publish reached the store: later ones use it
         scales = [sampler.get()["collision_scale"] for _ in range(6)]
         assert scales[-2:] == [0.75, 0.75]
+    finally:
+        sampler.close()
+
+
+def test_weights_store_hands_out_only_newer_weights_as_values(local_ray):
+    store = WeightsStore.remote()
+    assert ray.get(store.newer_than.remote(-1)) is None, "nothing published yet"
+    sd = {"w": torch.arange(6.0).reshape(2, 3)}
+    ray.get(store.set.remote(3, sd, {"collision_scale": 0.5}))
+    assert ray.get(store.newer_than.remote(3)) is None, "an up-to-date worker receives no weights"
+    version, weights, schedule = ray.get(store.newer_than.remote(2))
+    # values, not object references: nothing borrowed stays behind in the store or the worker
+    assert version == 3 and schedule == {"collision_scale": 0.5} and torch.equal(weights["w"], sd["w"])
+    ray.get(store.set.remote(4, {"w": torch.zeros(2, 3)}, None))
+    assert ray.get(store.newer_than.remote(3))[0] == 4
+
+
+def test_ray_workers_switch_to_each_newly_published_version(tmp_path, local_ray):
+    cfg = tiny_config(tmp_path, "v")
+    make_model = model_factory(cfg.env.obs_layout(), cfg.model)
+    sampler = RaySampler(cfg.env, make_model, num_workers=2, envs_per_worker=1, rollout=8, seed=0, max_in_flight=2)
+    try:
+        for version in (0, 7):
+            sampler.publish(version, make_model().state_dict())
+            # fragments requested before the publish may still carry the older version; later ones do not
+            versions = [int(sampler.get()["policy_version"][0]) for _ in range(6)]
+            assert versions[-2:] == [version, version], versions
     finally:
         sampler.close()
