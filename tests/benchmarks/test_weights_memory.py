@@ -1,0 +1,32 @@
+"""benchmarks.weights_memory: its growth measurement against a callable that keeps a known amount."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.weights_memory import growth_per_version, main
+
+
+def test_growth_per_version_measures_what_each_call_keeps():
+    kept = []
+
+    def keep_256_kib(version: int) -> None:
+        kept.append(np.ones(256 * 1024, np.uint8))  # touched pages: resident
+
+    m = growth_per_version(keep_256_kib, versions=40, warmup=2)
+    assert len(kept) == 42
+    assert m["bytes_per_version"] == pytest.approx(256 * 1024, rel=0.1)
+    assert m["rss_after_mb"] > m["rss_before_mb"]
+
+
+def test_growth_per_version_of_a_call_that_keeps_nothing_is_small():
+    scratch = np.ones(1024 * 1024, np.uint8)
+    m = growth_per_version(lambda v: scratch.sum(), versions=200, warmup=10)
+    assert abs(m["bytes_per_version"]) < 4096
+
+
+@pytest.mark.parametrize("argv", [["--versions", "0"], ["--warmup", "-1"]])
+def test_bad_counts_are_usage_errors(argv):
+    with pytest.raises(SystemExit) as exc:
+        main(argv + ["--no-append"])
+    assert exc.value.code == 2
