@@ -293,6 +293,10 @@ def test_killing_a_rollout_actor_mid_run_does_not_stop_training(tmp_path, local_
         if version == 3 and not killed:
             killed.append(sampler.worker_pids()[1])
             os.kill(killed[0], signal.SIGKILL)
+            # wait until Ray knows the actor is dead (a call to it fails), so that its pending fragments fail
+            # before the run can reach its last step on the other worker's fragments alone
+            with pytest.raises(ray.exceptions.RayActorError):
+                ray.get(sampler.workers[1].pid.remote(), timeout=60)
 
     res = train(cfg, progress=False, on_iteration=kill_once)
     assert killed and res.worker_restarts == 1
