@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import time
 from typing import Callable, Dict, Sequence
 
@@ -27,9 +26,10 @@ from benchmarks.common import load_average, publish, section_header
 
 
 def rss_mb() -> float:
-    """Resident memory of this process, MiB (Linux)."""
-    with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    """Resident memory of this process, MiB: the learner's own metric ``system/rss_mb`` (Linux)."""
+    from swarm_appo.metrics import system_metrics
+
+    return system_metrics()["system/rss_mb"]
 
 
 def growth_per_version(publish_one: Callable[[int], None], versions: int, warmup: int) -> Dict[str, float]:
@@ -58,11 +58,14 @@ def main(argv: Sequence[str] = None) -> int:
 
     import ray
 
-    from swarm_appo.config import load_config
+    from swarm_appo.config import ConfigError, load_config
     from swarm_appo.model import model_factory
     from swarm_appo.sampling import RaySampler, WeightsStore, init_local_ray
 
-    cfg = load_config(args.config, [])
+    try:
+        cfg = load_config(args.config, [])
+    except ConfigError as exc:
+        p.error(f"--config: {exc}")
     make_model = model_factory(cfg.env.obs_layout(), cfg.model)
     state_dict = make_model().state_dict()
     nbytes = sum(t.numel() * t.element_size() for t in state_dict.values())
@@ -94,7 +97,7 @@ def main(argv: Sequence[str] = None) -> int:
     section = "\n".join([
         *section_header("weights_memory", started, argv, ["swarm_appo"], load_before),
         f"- weights of `{args.config}`'s model ({nbytes / 1024:.0f} KiB), {args.versions:,} versions per path after "
-        f"{args.warmup:,} warm-up versions, one process, no training; learner RSS from /proc/self/statm",
+        f"{args.warmup:,} warm-up versions, one process, no training; learner RSS as `system/rss_mb` reads it",
         "", "| path | RSS before (MiB) | RSS after (MiB) | growth per version (bytes) | ms per version |",
         "|---|---:|---:|---:|---:|", *rows])
     publish(section, not args.no_append)

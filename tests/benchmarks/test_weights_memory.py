@@ -31,7 +31,7 @@ def test_growth_per_version_of_a_call_that_keeps_nothing_is_small():
     assert abs(m["bytes_per_version"]) < 2048
 
 
-@pytest.mark.parametrize("argv", [["--versions", "0"], ["--warmup", "-1"]])
+@pytest.mark.parametrize("argv", [["--versions", "0"], ["--warmup", "-1"], ["--config", "no_such.yaml"]])
 def test_bad_counts_are_usage_errors(argv):
     with pytest.raises(SystemExit) as exc:
         main(argv + ["--no-append"])
