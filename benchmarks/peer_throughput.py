@@ -1,0 +1,186 @@
+"""Training throughput against the peer: this trainer vs Sample Factory 2 + QuadSwarm at matched settings.
+
+    python -m benchmarks.peer_throughput --peer-python /path/sf-venv/bin/python --peer-src /path/quad-swarm-rl
+    python -m benchmarks.peer_throughput ... --encoders attention --epochs 1 --seconds 120 --peer-envs 2,8
+
+The peer (sample-factory 2.x and the quad-swarm-rl sources) lives in its own virtual environment: neither is a
+dependency of this project. Each configuration runs the peer, then this trainer in each of ``--precisions``,
+back to back, alone on the machine; agent-steps/s is the learner's consumed agent steps over the time after a
+warm-up (30% of the span from the first trained batch to the end), read from the peer's ``sf_log.txt``
+("Total num frames": env steps consumed by its learner, one per agent) and from our ``metrics.jsonl``.
+
+Matched settings: 8 drones on ``mix``, 6 nearest neighbours observed as position + velocity, the same encoder
+layers (QuadSwarm's "attention" = our ``kattention``, its "mean_embed" = our ``deepsets``: 256-wide tanh MLPs
+joined by a 512-wide tanh layer), separate actor and critic, linear heads (``model.head_hidden=0``), no
+recurrent core, no observation normalisation, rollout 128, batch 1024, lr 1e-4, V-trace, the given epochs.
+The peer runs ``--peer-workers`` rollout processes with ``--peer-envs`` swarms each (its own inference and
+learner processes beside them); ours one rollout worker and the learner (2 cores).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from typing import Dict, List, Sequence
+
+import torch
+
+from benchmarks.common import ROOT, load_average, publish, section_header
+
+PEER_ENCODERS = {"attention": "kattention", "mean_embed": "deepsets"}  # peer name -> ours
+_STAMP = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})\]\[\s*\d+\] ")
+_FRAMES = re.compile(r"Fps is .*?Total num frames: (\d+)")
+
+
+def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_dir: str, workers: int,
+                 envs_per_worker: int, seed: int = 0) -> List[str]:
+    """The peer's command line at the matched settings (see the module docstring)."""
+    return [python, "-m", "swarm_rl.train", "--env=quadrotor_multi", "--algo=APPO", f"--experiment=peer_{encoder}",
+            f"--train_dir={train_dir}", "--device=cpu", f"--seed={seed}", f"--train_for_seconds={int(seconds)}",
+            "--train_for_env_steps=10000000000", f"--num_workers={workers}",
+            f"--num_envs_per_worker={envs_per_worker}", "--use_rnn=False", "--rnn_size=256",
+            "--nonlinearity=tanh", "--actor_critic_share_weights=False", "--policy_initialization=xavier_uniform",
+            "--adaptive_stddev=False", "--with_vtrace=True", "--learning_rate=0.0001", "--rollout=128",
+            "--batch_size=1024", f"--num_epochs={epochs}", "--max_grad_norm=5.0", "--exploration_loss_coeff=0.0",
+            "--normalize_input=False", "--normalize_returns=False", "--gamma=0.99", "--quads_use_numba=True",
+            "--quads_num_agents=8", "--quads_mode=mix", "--quads_episode_duration=15.0",
+            f"--quads_neighbor_encoder_type={encoder}", "--quads_neighbor_hidden_size=256",
+            "--quads_neighbor_obs_type=pos_vel", "--quads_neighbor_visible_num=6", "--quads_collision_reward=5.0",
+            "--with_wandb=False", "--save_every_sec=100000", "--save_best_every_sec=100000"]
+
+
+def our_overrides(encoder: str, epochs: int, seconds: float, precision: str) -> List[str]:
+    """Our config overrides (on configs/paper.yaml) at the same matched settings."""
+    return [f"model.encoder={PEER_ENCODERS[encoder]}", "model.symmetry=none", "model.head_hidden=0",
+            "model.share_encoder=false", "model.normalize_obs=false", "env.num_agents=8", "env.scenario=mix",
+            "env.num_neighbors=6", "env.neighbor_obs=pos_vel", "algo.rollout=128", "algo.batch_size=1024",
+            "algo.lr=0.0001", f"algo.num_epochs={epochs}", f"runner.precision={precision}",
+            f"runner.inference_precision={precision}", f"runner.time_limit_s={seconds}",
+            "runner.total_agent_steps=10000000000", "runner.final_eval_episodes=0",
+            "runner.checkpoint_every_s=100000", "wandb.mode=disabled"]
+
+
+def parse_peer_log(text: str, warmup_fraction: float = 0.3) -> Dict[str, float]:
+    """Steady-state agent-steps/s from a Sample Factory log: the learner's frame count over time, after a warm-up
+    (``warmup_fraction`` of the span from its first trained batch to its last report)."""
+    points, start = [], None  # (seconds since epoch, frames); the log's first stamped line
+    for line in text.splitlines():
+        stamp = _STAMP.match(line)
+        if not stamp:
+            continue
+        t = datetime.datetime.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S").timestamp() + int(stamp.group(2)) / 1000
+        start = t if start is None else start
+        frames = _FRAMES.match(line, stamp.end())
+        if frames:
+            points.append((t, int(frames.group(1))))
+    trained = [p for p in points if p[1] > 0]
+    if len(trained) < 2:
+        raise RuntimeError(f"the peer's log has {len(trained)} reports with trained frames: raise --seconds")
+    t0, t1 = trained[0][0], trained[-1][0]
+    steady = [p for p in trained if p[0] >= t0 + warmup_fraction * (t1 - t0)]
+    if len(steady) < 2:
+        steady = trained[-2:]
+    (ta, fa), (tb, fb) = steady[0], steady[-1]
+    return {"sps": (fb - fa) / max(tb - ta, 1e-9), "agent_steps": fb, "first_trained_s": t0 - start}
+
+
+def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path) -> Dict[str, float]:
+    train_dir = tmp / f"peer_{encoder}_e{epochs}_x{envs_per_worker}"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [args.peer_src, os.environ.get("PYTHONPATH")])),
+               OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
+    cmd = peer_command(args.peer_python, encoder, epochs, args.seconds, str(train_dir), args.peer_workers,
+                       envs_per_worker)
+    start = time.time()
+    proc = subprocess.run(cmd, env=env, cwd=args.peer_src, capture_output=True, text=True,
+                          timeout=args.seconds + 300)
+    log = train_dir / f"peer_{encoder}" / "sf_log.txt"
+    if not log.exists():
+        raise RuntimeError(f"the peer wrote no log (exit {proc.returncode}):\n{proc.stderr[-2000:]}")
+    result = parse_peer_log(log.read_text())
+    result["wall_s"] = time.time() - start
+    return result
+
+
+def run_ours(args, encoder: str, epochs: int, precision: str, tmp: Path) -> Dict[str, float]:
+    from benchmarks.training_throughput import measure_run
+    from swarm_appo.config import load_config
+    from swarm_appo.trainer import train
+
+    cfg = load_config(str(ROOT / "configs" / "paper.yaml"), [
+        *our_overrides(encoder, epochs, args.seconds, precision), f"runner.run_dir={tmp}",
+        f"runner.name=ours_{encoder}_e{epochs}_{precision}"])
+    result = train(cfg, progress=False)
+    return measure_run(result.run_dir)
+
+
+def main(argv: Sequence[str] = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--peer-python", required=True, help="python of a virtual environment with sample-factory 2")
+    p.add_argument("--peer-src", required=True, help="a checkout of quad-swarm-rl (put on the peer's PYTHONPATH)")
+    p.add_argument("--encoders", default="attention,mean_embed", help=f"peer names: {', '.join(PEER_ENCODERS)}")
+    p.add_argument("--epochs", default="1,5")
+    p.add_argument("--precisions", default="fp32,bf16", help="ours, runner.precision (learner and inference)")
+    p.add_argument("--seconds", type=float, default=120.0, help="training time per run")
+    p.add_argument("--peer-workers", type=int, default=2, help="the peer's rollout processes (its default: cores)")
+    p.add_argument("--peer-envs", default="8", help="comma-separated swarms per peer rollout process; the best "
+                   "counts (8 x 2 workers = our 16 swarms in flight)")
+    p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
+    args = p.parse_args(argv)
+    for name in args.encoders.split(","):
+        if name not in PEER_ENCODERS:
+            p.error(f"unknown encoder {name!r}; valid: {', '.join(PEER_ENCODERS)}")
+    if not Path(args.peer_python).exists() or not (Path(args.peer_src) / "swarm_rl").is_dir():
+        p.error("--peer-python must exist and --peer-src must hold swarm_rl/")
+    os.environ.setdefault("WANDB_SILENT", "true")
+    started = datetime.datetime.now().isoformat(timespec="seconds")
+    load_before = load_average()
+
+    tmp = Path(tempfile.mkdtemp(prefix="peer_bench_"))
+    lines = []
+    try:
+        for encoder in args.encoders.split(","):
+            for epochs in (int(e) for e in args.epochs.split(",")):
+                peers = {}
+                for envs in (int(e) for e in args.peer_envs.split(",")):
+                    peers[envs] = run_peer(args, encoder, epochs, envs, tmp)
+                    print(f"peer {encoder} e{epochs} {args.peer_workers}x{envs}: {peers[envs]['sps']:,.0f} "
+                          f"agent-steps/s (first trained batch after {peers[envs]['first_trained_s']:.0f} s)",
+                          flush=True)
+                best_envs = max(peers, key=lambda e: peers[e]["sps"])
+                peer = peers[best_envs]
+                ours = {}
+                for precision in args.precisions.split(","):
+                    ours[precision] = run_ours(args, encoder, epochs, precision, tmp)
+                    print(f"ours {PEER_ENCODERS[encoder]} e{epochs} {precision}: {ours[precision]['sps']:,.0f} "
+                          f"agent-steps/s, {ours[precision]['sps'] / peer['sps']:.2f}x the peer", flush=True)
+                peer_cells = ", ".join(f"{args.peer_workers}x{e}: {r['sps']:,.0f}" for e, r in peers.items())
+                ours_cells = " | ".join(f"{r['sps']:,.0f} (**{r['sps'] / peer['sps']:.2f}x**)" for r in ours.values())
+                shares = ", ".join(f"{r['learner_share']:.2f}" for r in ours.values())
+                lines.append(f"| {encoder} / {PEER_ENCODERS[encoder]} | {epochs} | {peer_cells} | {ours_cells} | "
+                             f"{shares} |")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    precisions = args.precisions.split(",")
+    header = ("| encoder (peer / ours) | epochs | peer agent-steps/s (workers x swarms) | "
+              + " | ".join(f"ours {pr} (vs best peer)" for pr in precisions) + " | our learner share |\n"
+              + "|---|---|---|" + "---|" * len(precisions) + "---|")
+    peer_version = subprocess.run([args.peer_python, "-c", "import sample_factory; print(sample_factory.__version__)"],
+                                  capture_output=True, text=True).stdout.strip() or "unknown"
+    section = "\n".join([
+        *section_header("peer_throughput", started, argv, ["swarm_appo", "encoders", "quad_env"], load_before),
+        f"- peer: sample-factory {peer_version} + quad-swarm-rl ({args.peer_src}); torch {torch.__version__} (ours)",
+        f"- {args.seconds:.0f} s per run, figures after a 30% warm-up; matched settings in the module docstring",
+        "",
+        header, *lines,
+    ])
+    publish(section, append=not args.no_append)
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""benchmarks.peer_throughput: the peer's log parser, and that both sides of a pair train the same settings."""
+import pytest
+
+from benchmarks import peer_throughput as pt
+from swarm_appo.config import load_config
+
+
+def _report(clock: str, frames: int) -> str:
+    return (f"[2026-12-02 {clock}][01234] Fps is (10 sec: 1.0, 60 sec: 2.0, 300 sec: 3.0). Total num frames: "
+            f"{frames}. Throughput: 0: 5.0. Samples: {frames}. Policy #0 lag: (min: 0.0, avg: 1.0, max: 2.0)")
+
+
+def test_peer_log_rate_skips_start_up_and_warm_up():
+    lines = ["[2026-12-02 10:00:00,000][01234] Starting all processes...",
+             _report("10:00:20,000", 0),  # still compiling: no trained frames
+             _report("10:00:30,000", 1_000),  # first trained batch: t0
+             _report("10:00:40,000", 50_000),  # inside the 30% warm-up of the 100-s span
+             "[2026-12-02 10:00:45,000][01235] some other line mentioning Total num frames: 999999",
+             _report("10:01:00,000", 100_000),  # t0 + 30 s: the steady window starts here
+             _report("10:01:30,500", 130_500),
+             _report("10:02:10,000", 170_000)]  # t1 = t0 + 100 s
+    r = pt.parse_peer_log("\n".join(lines))
+    assert r["sps"] == pytest.approx((170_000 - 100_000) / 70.0)
+    assert r["agent_steps"] == 170_000
+    assert r["first_trained_s"] == pytest.approx(30.0)
+
+
+def test_peer_log_without_training_is_an_error():
+    with pytest.raises(RuntimeError, match="1 reports with trained frames"):
+        pt.parse_peer_log("\n".join([_report("10:00:20,000", 0), _report("10:00:30,000", 1_000)]))
+
+
+@pytest.mark.parametrize("encoder,epochs", [("attention", 1), ("mean_embed", 5)])
+def test_both_sides_train_the_same_settings(encoder, epochs, tmp_path):
+    peer = dict(a[2:].split("=", 1) for a in pt.peer_command("py", encoder, epochs, 60, "d", 2, 8) if "=" in a)
+    cfg = load_config(str(pt.ROOT / "configs" / "paper.yaml"),
+                      pt.our_overrides(encoder, epochs, 60, "fp32") + [f"runner.run_dir={tmp_path}"])
+    assert int(peer["batch_size"]) == cfg.algo.batch_size == 1024
+    assert int(peer["rollout"]) == cfg.algo.rollout
+    assert int(peer["num_epochs"]) == cfg.algo.num_epochs == epochs
+    assert float(peer["learning_rate"]) == cfg.algo.lr
+    assert float(peer["gamma"]) == cfg.algo.gamma
+    assert float(peer["max_grad_norm"]) == cfg.algo.max_grad_norm
+    assert int(peer["quads_num_agents"]) == cfg.env.num_agents
+    assert peer["quads_mode"] == cfg.env.scenario == "mix"
+    assert int(peer["quads_neighbor_visible_num"]) == cfg.env.num_neighbors
+    assert peer["quads_neighbor_obs_type"] == cfg.env.neighbor_obs == "pos_vel"
+    assert int(peer["quads_neighbor_hidden_size"]) == 256 and int(peer["rnn_size"]) == 256
+    assert peer["use_rnn"] == "False" and cfg.model.core == "none"
+    assert peer["actor_critic_share_weights"] == "False" and cfg.model.share_encoder is False
+    assert peer["normalize_input"] == "False" and cfg.model.normalize_obs is False
+    assert cfg.model.head_hidden == 0  # the peer's linear action and value heads
+    assert pt.PEER_ENCODERS[peer["quads_neighbor_encoder_type"]] == cfg.model.encoder
+    assert cfg.model.symmetry == "none"
+
+
+def test_unknown_encoder_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as e:
+        pt.main(["--peer-python", "x", "--peer-src", "y", "--encoders", "attn"])
+    assert e.value.code == 2 and "unknown encoder 'attn'; valid: attention, mean_embed" in capsys.readouterr().err
