@@ -12,7 +12,8 @@ warm-up (30% of the span from the first trained batch to the end), read from the
 Matched settings: 8 drones on ``mix``, 6 nearest neighbours observed as position + velocity, the same encoder
 layers (QuadSwarm's "attention" = our ``kattention``, its "mean_embed" = our ``deepsets``: 256-wide tanh MLPs
 joined by a 512-wide tanh layer), separate actor and critic, linear heads (``model.head_hidden=0``), no
-recurrent core, no observation normalisation, rollout 128, batch 1024, lr 1e-4, V-trace, the given epochs.
+recurrent core, no observation normalisation, rollout 128, batch 1024, lr 1e-4, the given epochs; advantages by
+V-trace here, by GAE (lambda 1, its quadrotor baseline's) in the peer, whose V-trace fails in sample-factory 2.1.1.
 The peer runs ``--peer-workers`` rollout processes with ``--peer-envs`` swarms each (its own inference and
 learner processes beside them); ours one rollout worker and the learner (2 cores).
 """
@@ -23,6 +24,7 @@ import datetime
 import os
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -46,7 +48,10 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
             "--train_for_env_steps=10000000000", f"--num_workers={workers}",
             f"--num_envs_per_worker={envs_per_worker}", "--use_rnn=False", "--rnn_size=256",
             "--nonlinearity=tanh", "--actor_critic_share_weights=False", "--policy_initialization=xavier_uniform",
-            "--adaptive_stddev=False", "--with_vtrace=True", "--learning_rate=0.0001", "--rollout=128",
+            "--adaptive_stddev=False", "--learning_rate=0.0001", "--rollout=128", "--recurrence=1",
+            # its quadrotor baseline's advantages (GAE, lambda 1): sample-factory 2.1.1's V-trace path fails in
+            # its summaries ('advantages' missing); our V-trace costs a few vector ops per batch either way
+            "--with_vtrace=False", "--gae_lambda=1.0",
             "--batch_size=1024", f"--num_epochs={epochs}", "--max_grad_norm=5.0", "--exploration_loss_coeff=0.0",
             "--normalize_input=False", "--normalize_returns=False", "--gamma=0.99", "--quads_use_numba=True",
             "--quads_num_agents=8", "--quads_mode=mix", "--quads_episode_duration=15.0",
@@ -96,12 +101,25 @@ def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path) -
                OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
     cmd = peer_command(args.peer_python, encoder, epochs, args.seconds, str(train_dir), args.peer_workers,
                        envs_per_worker)
-    start = time.time()
-    proc = subprocess.run(cmd, env=env, cwd=args.peer_src, capture_output=True, text=True,
-                          timeout=args.seconds + 300)
     log = train_dir / f"peer_{encoder}" / "sf_log.txt"
+    start = time.time()
+    train_dir.mkdir(parents=True)
+    with open(train_dir / "console.txt", "w") as console:  # a file, not a pipe: the peer logs a lot
+        proc = subprocess.Popen(cmd, env=env, cwd=args.peer_src, stdout=console, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:  # the peer keeps running when its learner dies: watch its log for that
+        while proc.poll() is None:
+            time.sleep(2.0)
+            text = log.read_text() if log.exists() else ""
+            if "Unhandled exception" in text or time.time() - start > args.seconds + 300:
+                raise RuntimeError(f"the peer failed or hung; its log ends:\n{text[-3000:]}")
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
     if not log.exists():
-        raise RuntimeError(f"the peer wrote no log (exit {proc.returncode}):\n{proc.stderr[-2000:]}")
+        raise RuntimeError(f"the peer wrote no log (exit {proc.returncode}):\n"
+                           f"{(train_dir / 'console.txt').read_text()[-2000:]}")
     result = parse_peer_log(log.read_text())
     result["wall_s"] = time.time() - start
     return result
