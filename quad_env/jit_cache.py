@@ -4,9 +4,7 @@ numba checks a cached kernel against its *defining* file only (its modification 
 in ``kernels.py`` inline constants from ``params.py`` and helpers from ``rng.py``: after a change to one of
 those alone, numba would keep loading the old compiled kernels. So the cache lives in a folder named after a
 hash of every source file of the package: any change to any of them selects a fresh folder (and recompiles
-once), and going back to an earlier version finds its folder again. Inside it, a kernel's place does not depend
-on where the sources lie (numba's own places depend on the absolute path): a clone, another checkout of the same
-version, or a Ray job's copy of the working dir loads the kernels that any of them compiled.
+once), and going back to an earlier version finds its folder again.
 
 The root is ``$NUMBA_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/swarm_appo/numba`` (``~/.cache/...``).
 Every kernel module decorates with this module's ``njit`` (numba's ``njit``, defined inside ``keyed_cache()``),
@@ -61,46 +59,18 @@ def _hash_of(package_dir: Path) -> str:
 
 
 def njit(*args, **options):
-    """``numba.njit(**options)`` (the kernels pass ``cache=True``) caching in the folder of this version of the
-    sources, at a place that does not depend on where the sources lie (``_keyed_cache_classes``). Use as
-    ``@njit(cache=True)`` or ``@njit``."""
+    """``numba.njit(**options)`` (the kernels pass ``cache=True``), defined inside ``keyed_cache()`` so the
+    kernel caches in the folder of this version of the sources. Use as ``@njit(cache=True)`` or ``@njit``."""
     import numba
 
     def decorate(fn):
-        opts = dict(options)
-        cached = opts.pop("cache", False)
-        dispatcher = numba.njit(**opts)(fn)
-        if cached:  # what numba's enable_caching() does, with the keyed locator
-            dispatcher._cache = _keyed_cache_classes()(fn)
-        return dispatcher
+        previous = numba.config.CACHE_DIR
+        numba.config.CACHE_DIR = str(cache_root() / _hash_of(PACKAGE_DIR))
+        try:
+            return numba.njit(**options)(fn)
+        finally:
+            numba.config.CACHE_DIR = previous
 
     if args and callable(args[0]) and not options:
         return decorate(args[0])
     return decorate
-
-
-@functools.lru_cache(maxsize=None)
-def _keyed_cache_classes():
-    """numba's function cache with one change: a kernel caches in ``<root>/<source hash>/<its package folder's
-    name>``. numba's own locator adds a hash of the source file's absolute path, so every clone of the project
-    and every Ray job (which runs from a fresh copy of the working dir) compiled all kernels again; the folder
-    is keyed on the sources' content already, and numba still checks the defining file's content hash."""
-    from numba.core import caching
-
-    class KeyedLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
-        def __init__(self, py_func, py_file):
-            self._py_file = py_file
-            self._lineno = py_func.__code__.co_firstlineno
-            package = os.path.basename(os.path.dirname(os.path.abspath(py_file)))
-            self._cache_path = str(cache_root() / _hash_of(PACKAGE_DIR) / package)
-
-        def get_cache_path(self):
-            return self._cache_path
-
-    class KeyedImpl(caching.CompileResultCacheImpl):
-        _locator_classes = [KeyedLocator]
-
-    class KeyedFunctionCache(caching.FunctionCache):
-        _impl_class = KeyedImpl
-
-    return KeyedFunctionCache

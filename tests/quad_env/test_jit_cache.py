@@ -107,36 +107,6 @@ def test_the_keyed_njit_caches_under_the_hash_however_the_module_is_imported(tmp
     assert value == 10.0 and new_path != path
 
 
-def test_copies_of_one_version_at_other_paths_share_the_compiled_kernels(tmp_path):
-    """A clone, or a Ray job's copy of the working dir, loads what another copy of the same sources compiled
-    (numba's own locator keys on the absolute path and compiled everything again); a changed copy does not."""
-    cache = tmp_path / "cache"
-    script = textwrap.dedent("""
-        import sys
-        sys.path.insert(0, sys.argv[1])
-        from pkg.kernels import scaled
-        print(scaled(2.0), sum(scaled.stats.cache_hits.values()), sum(scaled.stats.cache_misses.values()),
-              scaled._cache._cache_path)
-    """)
-
-    def copy_at(where, constant):
-        where.mkdir(parents=True, exist_ok=True)
-        make_package(where, constant)
-        kernels = where / "pkg" / "kernels.py"
-        kernels.write_text(kernels.read_text().replace("from numba import njit", "from pkg.jit_cache import njit"))
-        env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
-        out = subprocess.run([sys.executable, "-c", script, str(where)], capture_output=True, text=True, env=env,
-                             check=True).stdout.split()
-        return float(out[0]), int(out[1]), int(out[2]), out[3]
-
-    value, hits, misses, folder = copy_at(tmp_path / "clone_a", 3.0)
-    assert (value, hits, misses) == (6.0, 0, 1)  # compiled
-    value, hits, misses, other = copy_at(tmp_path / "elsewhere" / "clone_b", 3.0)
-    assert (value, hits, misses) == (6.0, 1, 0) and other == folder  # loaded, not compiled again
-    value, hits, misses, _ = copy_at(tmp_path / "clone_c", 5.0)  # another version: its own folder
-    assert (value, hits, misses) == (10.0, 0, 1)
-
-
 def test_light_imports_load_neither_numba_nor_torch():
     """``import quad_env`` (config and layout) loads neither; ``encoders`` needs the layout only, so no numba;
     ``swarm_appo.config`` no torch (it loads them only to validate a config)."""
