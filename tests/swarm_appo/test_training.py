@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -293,10 +294,20 @@ def test_killing_a_rollout_actor_mid_run_does_not_stop_training(tmp_path, local_
         if version == 3 and not killed:
             killed.append(sampler.worker_pids()[1])
             os.kill(killed[0], signal.SIGKILL)
-            # wait until Ray knows the actor is dead (a call to it fails), so that its pending fragments fail
-            # before the run can reach its last step on the other worker's fragments alone
-            with pytest.raises(ray.exceptions.RayActorError):
-                ray.get(sampler.workers[1].pid.remote(), timeout=60)
+            # wait until Ray has declared the actor dead, so that its pending fragments fail before the run can
+            # reach its last step on the other worker's fragments alone. A call can first fail with
+            # ActorUnavailableError (the process is gone, Ray has not decided yet): pending calls then still wait.
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    ray.get(sampler.workers[1].pid.remote(), timeout=60)
+                except ray.exceptions.ActorUnavailableError:
+                    assert time.monotonic() < deadline, "Ray never declared the killed actor dead"
+                    time.sleep(0.05)
+                    continue
+                except ray.exceptions.RayActorError:
+                    break
+                raise AssertionError("the killed actor still answers")
 
     res = train(cfg, progress=False, on_iteration=kill_once)
     assert killed and res.worker_restarts == 1
