@@ -42,7 +42,7 @@ from typing import Dict, List
 
 import numpy as np
 
-from benchmarks.common import ROOT, append_results, commit, load_average, machine
+from benchmarks.common import ROOT, append_results, commit, load_average, machine, steady_window
 from benchmarks.training_throughput import measure_run
 
 FETCH_KEYS = ("perf/fetch_share", "perf/remote_fetch_share", "perf/remote_fragment_fraction",
@@ -147,9 +147,7 @@ def steady_figures(run_dir: Path, cpu: CpuMonitor) -> Dict[str, float]:
     out = measure_run(run_dir)
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     records = [r for r in records if "perf/learner_share" in r]
-    t0, t1 = records[0]["charts/elapsed_s"], records[-1]["charts/elapsed_s"]
-    steady = [r for r in records if r["charts/elapsed_s"] >= t0 + 0.3 * (t1 - t0)]
-    steady = steady if len(steady) >= 2 else records[-2:]
+    steady = steady_window(records, lambda r: r["charts/elapsed_s"])
     for key in FETCH_KEYS:
         values = [r[key] for r in steady if r.get(key) is not None]
         out[key] = float(np.mean(values)) if values else float("nan")

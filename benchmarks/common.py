@@ -6,7 +6,9 @@ import platform
 import subprocess
 import time
 from pathlib import Path
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, List, Optional, Sequence, TypeVar
+
+T = TypeVar("T")
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
@@ -49,6 +51,14 @@ def load_average() -> str:
         return " ".join(f"{v:.2f}" for v in os.getloadavg())
     except OSError:
         return "n/a"
+
+
+def steady_window(items: Sequence[T], time_of: Callable[[T], float], warmup_fraction: float = 0.3) -> List[T]:
+    """The items (in time order) after the warm-up: ``warmup_fraction`` of the span from the first to the last;
+    at least the last two."""
+    t0, t1 = time_of(items[0]), time_of(items[-1])
+    steady = [x for x in items if time_of(x) >= t0 + warmup_fraction * (t1 - t0)]
+    return steady if len(steady) >= 2 else list(items[-2:])
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:

@@ -33,7 +33,7 @@ from typing import Dict, List, Sequence
 
 import torch
 
-from benchmarks.common import ROOT, load_average, publish, section_header
+from benchmarks.common import ROOT, load_average, publish, section_header, steady_window
 
 PEER_ENCODERS = {"attention": "kattention", "mean_embed": "deepsets"}  # peer name -> ours
 _STAMP = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})\]\[\s*\d+\] ")
@@ -88,12 +88,9 @@ def parse_peer_log(text: str, warmup_fraction: float = 0.3) -> Dict[str, float]:
     trained = [p for p in points if p[1] > 0]
     if len(trained) < 2:
         raise RuntimeError(f"the peer's log has {len(trained)} reports with trained frames: raise --seconds")
-    t0, t1 = trained[0][0], trained[-1][0]
-    steady = [p for p in trained if p[0] >= t0 + warmup_fraction * (t1 - t0)]
-    if len(steady) < 2:
-        steady = trained[-2:]
+    steady = steady_window(trained, lambda p: p[0], warmup_fraction)
     (ta, fa), (tb, fb) = steady[0], steady[-1]
-    return {"sps": (fb - fa) / max(tb - ta, 1e-9), "agent_steps": fb, "first_trained_s": t0 - start}
+    return {"sps": (fb - fa) / max(tb - ta, 1e-9), "agent_steps": fb, "first_trained_s": trained[0][0] - start}
 
 
 def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path) -> Dict[str, float]:
@@ -121,9 +118,7 @@ def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path) -
     if not log.exists():
         raise RuntimeError(f"the peer wrote no log (exit {proc.returncode}):\n"
                            f"{(train_dir / 'console.txt').read_text()[-2000:]}")
-    result = parse_peer_log(log.read_text())
-    result["wall_s"] = time.time() - start
-    return result
+    return parse_peer_log(log.read_text())
 
 
 def run_ours(args, encoder: str, epochs: int, precision: str, tmp: Path) -> Dict[str, float]:
@@ -151,9 +146,19 @@ def main(argv: Sequence[str] = None) -> None:
                    "counts (8 x 2 workers = our 16 swarms in flight)")
     p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
     args = p.parse_args(argv)
-    for name in args.encoders.split(","):
+    encoders, precisions = args.encoders.split(","), args.precisions.split(",")
+    for name in encoders:
         if name not in PEER_ENCODERS:
             p.error(f"unknown encoder {name!r}; valid: {', '.join(PEER_ENCODERS)}")
+    for name in precisions:
+        if name not in ("fp32", "bf16"):
+            p.error(f"--precisions: unknown {name!r}; valid: fp32, bf16")
+    try:
+        epoch_counts, peer_envs = ([int(x) for x in s.split(",")] for s in (args.epochs, args.peer_envs))
+    except ValueError:
+        p.error("--epochs and --peer-envs take comma-separated integers")
+    if min(epoch_counts + peer_envs) < 1:
+        p.error("--epochs and --peer-envs must be >= 1")
     if not Path(args.peer_python).exists() or not (Path(args.peer_src) / "swarm_rl").is_dir():
         p.error("--peer-python must exist and --peer-src must hold swarm_rl/")
     os.environ.setdefault("WANDB_SILENT", "true")
@@ -163,18 +168,17 @@ def main(argv: Sequence[str] = None) -> None:
     tmp = Path(tempfile.mkdtemp(prefix="peer_bench_"))
     lines = []
     try:
-        for encoder in args.encoders.split(","):
-            for epochs in (int(e) for e in args.epochs.split(",")):
+        for encoder in encoders:
+            for epochs in epoch_counts:
                 peers = {}
-                for envs in (int(e) for e in args.peer_envs.split(",")):
+                for envs in peer_envs:
                     peers[envs] = run_peer(args, encoder, epochs, envs, tmp)
                     print(f"peer {encoder} e{epochs} {args.peer_workers}x{envs}: {peers[envs]['sps']:,.0f} "
                           f"agent-steps/s (first trained batch after {peers[envs]['first_trained_s']:.0f} s)",
                           flush=True)
-                best_envs = max(peers, key=lambda e: peers[e]["sps"])
-                peer = peers[best_envs]
+                peer = max(peers.values(), key=lambda r: r["sps"])
                 ours = {}
-                for precision in args.precisions.split(","):
+                for precision in precisions:
                     ours[precision] = run_ours(args, encoder, epochs, precision, tmp)
                     print(f"ours {PEER_ENCODERS[encoder]} e{epochs} {precision}: {ours[precision]['sps']:,.0f} "
                           f"agent-steps/s, {ours[precision]['sps'] / peer['sps']:.2f}x the peer", flush=True)
@@ -186,7 +190,6 @@ def main(argv: Sequence[str] = None) -> None:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
-    precisions = args.precisions.split(",")
     header = ("| encoder (peer / ours) | epochs | peer agent-steps/s (workers x swarms) | "
               + " | ".join(f"ours {pr} (vs best peer)" for pr in precisions) + " | our learner share |\n"
               + "|---|---|---|" + "---|" * len(precisions) + "---|")
@@ -201,6 +204,7 @@ def main(argv: Sequence[str] = None) -> None:
         header, *lines,
     ])
     publish(section, append=not args.no_append)
+
 
 if __name__ == "__main__":
     main()

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from benchmarks.common import ROOT, append_results, commit, gemm_rate, load_average, machine
+from benchmarks.common import ROOT, append_results, commit, gemm_rate, load_average, machine, steady_window
 from encoders import swarm_observations
 from encoders.testing import random_obs
 from swarm_appo.config import load_config
@@ -63,10 +63,7 @@ def measure_run(run_dir: Path, warmup_fraction: float = 0.3) -> dict:
     records = [r for r in records if "perf/learner_share" in r]
     if len(records) < 2:
         raise RuntimeError(f"only {len(records)} learner iterations in {run_dir}: raise --seconds")
-    t0, t1 = records[0]["charts/elapsed_s"], records[-1]["charts/elapsed_s"]
-    steady = [r for r in records if r["charts/elapsed_s"] >= t0 + warmup_fraction * (t1 - t0)]
-    if len(steady) < 2:
-        steady = records[-2:]
+    steady = steady_window(records, lambda r: r["charts/elapsed_s"], warmup_fraction)
     first, last = steady[0], steady[-1]
     sps = (last["global_step"] - first["global_step"]) / max(last["charts/elapsed_s"] - first["charts/elapsed_s"], 1e-9)
     mean = lambda key: float(np.mean([r[key] for r in steady]))  # noqa: E731

@@ -54,7 +54,21 @@ def test_both_sides_train_the_same_settings(encoder, epochs, tmp_path):
     assert cfg.model.symmetry == "none"
 
 
-def test_unknown_encoder_is_a_usage_error(capsys):
+@pytest.mark.parametrize("option,message", [
+    (["--encoders", "attn"], "unknown encoder 'attn'; valid: attention, mean_embed"),
+    (["--precisions", "fp16"], "--precisions: unknown 'fp16'; valid: fp32, bf16"),
+    (["--epochs", "1,five"], "--epochs and --peer-envs take comma-separated integers"),
+    (["--peer-envs", "0"], "--epochs and --peer-envs must be >= 1"),
+    ([], "--peer-python must exist and --peer-src must hold swarm_rl/"),
+])
+def test_bad_options_are_usage_errors(option, message, capsys, tmp_path):
     with pytest.raises(SystemExit) as e:
-        pt.main(["--peer-python", "x", "--peer-src", "y", "--encoders", "attn"])
-    assert e.value.code == 2 and "unknown encoder 'attn'; valid: attention, mean_embed" in capsys.readouterr().err
+        pt.main(["--peer-python", str(tmp_path / "no_python"), "--peer-src", str(tmp_path), *option])
+    assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_steady_window_drops_the_warm_up_and_keeps_at_least_two():
+    from benchmarks.common import steady_window
+    times = [0.0, 10.0, 29.0, 30.0, 70.0, 100.0]
+    assert steady_window(times, float) == [30.0, 70.0, 100.0]  # from 0 + 0.3 x 100 s on
+    assert steady_window(times, float, warmup_fraction=0.95) == [70.0, 100.0]  # one left: the last two
