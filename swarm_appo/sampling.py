@@ -41,6 +41,9 @@ from swarm_appo.rollout import RolloutWorker, worker_seed
 log = logging.getLogger(__name__)
 
 Weights = Tuple[int, Dict[str, torch.Tensor], Optional[Dict[str, float]]]  # version, state dict, env schedule
+# A store that takes longer than this to accept one version is stuck (it takes milliseconds): fail with a clear
+# error rather than hang the learner for good (seen once in ~12 test-suite runs, never understood).
+PUBLISH_TIMEOUT_S = 300.0
 
 
 def fragment_nbytes(fragment: Dict[str, Any]) -> int:
@@ -129,7 +132,7 @@ class RaySampler:
     def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
                  rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0,
                  store_values: bool = False, precision: str = "fp32", scheduling_strategy: str = "DEFAULT",
-                 ready_timeout_s: Optional[float] = None):
+                 ready_timeout_s: Optional[float] = None, publish_timeout_s: float = PUBLISH_TIMEOUT_S):
         """``scheduling_strategy="SPREAD"`` places the actors over all nodes of a cluster; with
         ``ready_timeout_s`` the constructor waits until every actor is placed and has compiled its kernels,
         and raises a clear error if the cluster cannot host them all in that time."""
@@ -140,6 +143,7 @@ class RaySampler:
         self._seed = seed
         self._store_values = store_values
         self._precision = precision
+        self.publish_timeout_s = publish_timeout_s
         self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0,
                                       scheduling_strategy=scheduling_strategy)(RayRolloutWorker)
         self._store = WeightsStore.remote()
@@ -178,7 +182,12 @@ class RaySampler:
         """The weights of ``version``, with the environment values of the training schedule at this point
         (``RolloutWorker.set_weights``); workers pick them up before their next fragment."""
         # Waiting for the store keeps the order: a fragment started after publish() returns acts with this version.
-        ray.get(self._store.set.remote(version, state_dict, env_schedule))
+        try:
+            ray.get(self._store.set.remote(version, state_dict, env_schedule), timeout=self.publish_timeout_s)
+        except ray.exceptions.GetTimeoutError:
+            raise RuntimeError(f"the weights store did not take policy version {version} within "
+                               f"{self.publish_timeout_s:g} s (it takes milliseconds when healthy): Ray is stuck; "
+                               f"the run stops here and resumes from its last checkpoint") from None
 
     def _fill(self) -> None:
         """Keep every worker busy, round-robin, up to the in-flight bound."""

@@ -398,6 +398,27 @@ def test_weights_store_hands_out_only_newer_weights_as_values(local_ray):
     assert ray.get(store.newer_than.remote(3))[0] == 4
 
 
+@ray.remote(num_cpus=0)
+class _StuckStore:
+    def set(self, *args):
+        time.sleep(30)
+
+
+def test_a_stuck_weights_store_fails_publish_with_a_clear_error(tmp_path, local_ray):
+    cfg = tiny_config(tmp_path, "s")
+    make_model = model_factory(cfg.env.obs_layout(), cfg.model)
+    sampler = RaySampler(cfg.env, make_model, num_workers=1, envs_per_worker=1, rollout=8, seed=0, max_in_flight=1)
+    real_store = sampler._store
+    try:
+        sampler.publish(0, make_model().state_dict())  # the real store (its first call waits for it to start)
+        sampler._store, sampler.publish_timeout_s = _StuckStore.remote(), 0.5
+        with pytest.raises(RuntimeError, match="weights store did not take policy version 1 within 0.5 s"):
+            sampler.publish(1, make_model().state_dict())
+    finally:
+        ray.kill(real_store)
+        sampler.close()
+
+
 def test_ray_workers_switch_to_each_newly_published_version(tmp_path, local_ray):
     cfg = tiny_config(tmp_path, "v")
     make_model = model_factory(cfg.env.obs_layout(), cfg.model)
