@@ -68,6 +68,7 @@ class Placement:
         self.workers: List[Dict[str, Any]] = []
         self.fragments = Counter()  # node id -> fragments
         self.agent_steps = Counter()  # node id -> agent steps
+        self.worker_fragments = Counter()  # worker index -> fragments (tells a stuck actor from a slow node)
         gpus = sum(n["gpus"] for n in self.nodes)
         if device.type != "cuda" and gpus > 0:
             log.warning("the cluster has %g GPU(s) but the learner runs on the CPU of node %s (%s): the driver "
@@ -87,10 +88,13 @@ class Placement:
         if node is not None:
             self.fragments[node] += 1
             self.agent_steps[node] += fragment["num_agent_steps"]
+        if "worker_id" in fragment:
+            self.worker_fragments[int(fragment["worker_id"])] += 1
 
     def as_dict(self, worker_restarts: int = 0) -> Dict[str, Any]:
         return {"ray_address": self.ray_address, "nodes": self.nodes, "learner": self.learner,
-                "rollout_workers": self.workers, "fragments_per_node": dict(self.fragments),
+                "rollout_workers": [dict(w, fragments=self.worker_fragments[w["worker_id"]]) for w in self.workers],
+                "fragments_per_node": dict(self.fragments),
                 "agent_steps_per_node": dict(self.agent_steps), "worker_restarts": worker_restarts}
 
     def write(self, run_dir: Path, worker_restarts: int = 0) -> Path:

@@ -193,7 +193,9 @@ def test_submit_spreads_rollout_actors_over_both_nodes(cluster, other_ray, run_r
     assert len(placement["rollout_workers"]) == 3
     assert {w["node_id"] for w in placement["rollout_workers"]} == node_ids
     # ... and both nodes produced fragments, which the learner fetched across nodes
-    assert set(placement["fragments_per_node"]) == node_ids and min(placement["fragments_per_node"].values()) > 0
+    assert set(placement["fragments_per_node"]) == node_ids and min(placement["fragments_per_node"].values()) > 0, \
+        [(w["worker_id"], w["node_id"][:8], w["fragments"]) for w in placement["rollout_workers"]]
+    assert sum(w["fragments"] for w in placement["rollout_workers"]) == sum(placement["fragments_per_node"].values())
     assert sum(placement["agent_steps_per_node"].values()) == records[-1]["global_step"]
     assert placement["learner"]["node_id"] in node_ids and placement["learner"]["device"] == "cpu"
     assert any(r.get("perf/remote_fragment_fraction", 0) > 0 for r in records)
