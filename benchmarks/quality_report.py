@@ -1,0 +1,96 @@
+"""The quality goal's report (issue 15 item 6): learning curves of several runs side by side, and where the drones
+of an evaluation fail (collided, or clean but outside the success radius at the end).
+
+    python -m benchmarks.quality_report --run "30 M=runs/quality3_deepsets_se3" --run "60 M=runs/quality_60m"
+        [--episodes runs/quality_60m/eval_q60/episodes.jsonl] [--figure benchmarks/figures/x.png] [--append]
+
+Curves come from each run's metrics.jsonl (training episodes, so with the training aids) through
+``benchmarks.table1.plot_curves``; the failure split from the per-drone flags of ``swarm_appo.evaluate``'s
+episodes.jsonl (no training aids).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+from benchmarks.common import RESULTS, load_average, publish, section_header
+from benchmarks.table1 import plot_curves, read_metrics
+
+
+def parse_run(text: str) -> Tuple[str, Path]:
+    label, sep, path = text.partition("=")
+    if not sep or not label or not path:
+        raise argparse.ArgumentTypeError(f"--run {text!r}: expected LABEL=RUN_DIR")
+    if not (Path(path) / "metrics.jsonl").exists():
+        raise argparse.ArgumentTypeError(f"--run {text!r}: {path}/metrics.jsonl does not exist")
+    return label, Path(path)
+
+
+def failure_split(episodes: List[dict]) -> Dict[str, Dict[str, float]]:
+    """Per policy: shares of drones that succeeded, collided after the grace period, or stayed clean but ended
+    outside the success radius; the reached share (within the radius at some time, no collision: QuadSwarm's
+    success); contact-free episodes."""
+    by_policy: Dict[str, List[dict]] = defaultdict(list)
+    for e in episodes:
+        by_policy[e["policy"]].append(e)
+    out = {}
+    for policy, eps in by_policy.items():
+        flags = [(s, c, r) for e in eps
+                 for s, c, r in zip(e["agent_success"], e["agent_collided"], e["agent_reached"])]
+        n = len(flags)
+        out[policy] = {"drones": n, "success": sum(s for s, _, _ in flags) / n,
+                       "collided": sum(c for _, c, _ in flags) / n,
+                       "clean_outside": sum(not s and not c for s, c, _ in flags) / n,
+                       "reached": sum(r for _, _, r in flags) / n,
+                       "episodes": len(eps),
+                       "contact_free_episodes": sum(e["collisions_after_grace"] == 0 for e in eps)}
+    return out
+
+
+def report(split: Dict[str, Dict[str, float]], figure: Path = None) -> str:
+    lines = []
+    if split:
+        lines += ["| policy | drones | Suc % | collided % | clean, outside 0.5 m at the end % | Reached % | "
+                  "contact-free episodes |", "|---|---:|---:|---:|---:|---:|---:|"]
+        for policy, s in split.items():
+            lines.append(f"| {policy} | {s['drones']} | {100 * s['success']:.1f} | {100 * s['collided']:.1f} | "
+                         f"{100 * s['clean_outside']:.1f} | {100 * s['reached']:.1f} | "
+                         f"{s['contact_free_episodes']}/{s['episodes']} |")
+    if figure is not None:
+        lines += ["", f"![learning curves]({os.path.relpath(figure, RESULTS.parent)})"]  # as RESULTS.md links it
+    return "\n".join(lines)
+
+
+def main(argv=None) -> Dict[str, Dict[str, float]]:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", type=parse_run, action="append", default=[], help="LABEL=RUN_DIR, repeatable")
+    p.add_argument("--episodes", type=Path, help="episodes.jsonl of a swarm_appo.evaluate output folder")
+    p.add_argument("--figure", type=Path, help="PNG of the runs' learning curves (needs --run)")
+    p.add_argument("--append", action="store_true", help="append the figures to benchmarks/RESULTS.md")
+    args = p.parse_args(argv)
+    if not args.run and args.episodes is None:
+        p.error("give --run LABEL=RUN_DIR (curves) and/or --episodes FILE (failure split)")
+    if args.figure is not None and not args.run:
+        p.error("--figure needs at least one --run")
+    if args.episodes is not None and not args.episodes.exists():
+        p.error(f"--episodes: {args.episodes} does not exist")
+    started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
+    figure = None
+    if args.figure is not None:
+        figure = plot_curves({label: [read_metrics(rd)] for label, rd in args.run}, args.figure,
+                             "training episodes (training aids on)")
+    split = {}
+    if args.episodes is not None:
+        split = failure_split([json.loads(line) for line in args.episodes.read_text().splitlines() if line.strip()])
+    header = section_header("quality_report", started, argv, ["benchmarks"], load_before)
+    publish("\n".join(header + ["", report(split, figure)]), args.append)
+    return split
+
+
+if __name__ == "__main__":
+    main()
