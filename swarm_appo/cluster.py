@@ -88,8 +88,7 @@ class Placement:
         if node is not None:
             self.fragments[node] += 1
             self.agent_steps[node] += fragment["num_agent_steps"]
-        if "worker_id" in fragment:
-            self.worker_fragments[int(fragment["worker_id"])] += 1
+        self.worker_fragments[int(fragment["worker_id"])] += 1  # every fragment names its worker (rollout.py)
 
     def as_dict(self, worker_restarts: int = 0) -> Dict[str, Any]:
         return {"ray_address": self.ray_address, "nodes": self.nodes, "learner": self.learner,
