@@ -92,7 +92,9 @@ METRICS: Dict[str, str] = {
     "perf/fragment_mb": "mean size of a fragment's arrays (MiB)",
     "perf/policy_version": "learner policy version (bumped once per learner iteration)",
     "perf/num_updates": "optimizer steps taken",
-    "perf/worker_restarts": "rollout workers replaced after dying (cumulative)",
+    "perf/worker_restarts": "rollout workers replaced after dying or stalling (cumulative)",
+    "perf/worker_stalls": "rollout calls that never came back while other workers delivered; each restarted "
+                          "its worker (cumulative)",
     "perf/startup_s": "first record of a process only: seconds from the process start to the first fragment in the "
                       "learner (imports, config, kernel compilation, Ray and worker start-up, one rollout)",
     # system/: resources of the learner process (system_metrics)

@@ -19,6 +19,12 @@ newest weights (passing the weights with the call would freeze the version at su
 holds values, not object references: an ObjectRef handed to an actor inside a container is a borrowed
 reference, and Ray's owner-side bookkeeping of borrowed references grew the learner by ~1 KB per
 published version (benchmarks/RESULTS.md, "reliability": a 1-hour soak grew 13 % that way).
+
+A watchdog replaces a rollout actor whose call never comes back while the others keep delivering
+(``StallPolicy``). On a two-node test cluster about one submission in four had a worker whose two calls
+had FINISHED in Ray's task table but never became ready at the driver: without the watchdog that worker
+stays silent for the rest of the run. A stalled call is first tried once more with ``ray.get``; if that
+times out too, the actor is killed and restarted like a dead one (counted in ``restarts``).
 """
 from __future__ import annotations
 
@@ -29,6 +35,7 @@ import socket
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
 
 import numpy as np
@@ -44,6 +51,31 @@ Weights = Tuple[int, Dict[str, torch.Tensor], Optional[Dict[str, float]]]  # ver
 # A store that takes longer than this to accept one version is stuck (it takes milliseconds): fail with a clear
 # error rather than hang the learner for good (seen once in ~12 test-suite runs, never understood).
 PUBLISH_TIMEOUT_S = 300.0
+
+
+@dataclass(frozen=True)
+class StallPolicy:
+    """When a rollout worker's oldest outstanding call counts as stalled. Counting the fragments the other
+    workers delivered meanwhile (``overtaken``) makes the rule independent of load and fragment size: a busy
+    machine slows every worker alike. The ages only keep a brief hiccup (or a worker still compiling its
+    first fragment) from costing a restart; ``hard_s`` covers a lone worker, which nobody can overtake."""
+    min_age_s: float = 10.0
+    """A call younger than this is never stalled."""
+    first_call_min_age_s: float = 120.0
+    """The same for a fresh actor's first call when nobody waited for it to compile (``ready_timeout_s=None``)."""
+    overtakes_per_worker: int = 25
+    """Stalled once every other worker has, on average, delivered this many fragments since the call was made."""
+    hard_s: float = 900.0
+    """Stalled after this long whatever the others did."""
+    check_every_s: float = 1.0
+    """How long the sampler waits for a fragment before it looks for stalled calls."""
+
+    def is_stalled(self, age_s: float, overtaken: int, num_workers: int, first_call: bool) -> bool:
+        if age_s >= self.hard_s:
+            return True
+        if age_s < (self.first_call_min_age_s if first_call else self.min_age_s):
+            return False
+        return num_workers > 1 and overtaken >= self.overtakes_per_worker * (num_workers - 1)
 
 
 def fragment_nbytes(fragment: Dict[str, Any]) -> int:
@@ -63,6 +95,7 @@ class SerialSampler:
         self._next = 0
         self._weights: Optional[Weights] = None
         self.restarts = 0
+        self.stalls = 0
 
     def publish(self, version: int, state_dict: Dict[str, torch.Tensor],
                 env_schedule: Optional[Dict[str, float]] = None) -> None:
@@ -132,7 +165,8 @@ class RaySampler:
     def __init__(self, env_cfg: EnvConfig, model_factory: Callable, num_workers: int, envs_per_worker: int,
                  rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0,
                  store_values: bool = False, precision: str = "fp32", scheduling_strategy: str = "DEFAULT",
-                 ready_timeout_s: Optional[float] = None, publish_timeout_s: float = PUBLISH_TIMEOUT_S):
+                 ready_timeout_s: Optional[float] = None, publish_timeout_s: float = PUBLISH_TIMEOUT_S,
+                 stall_policy: StallPolicy = StallPolicy()):
         """``scheduling_strategy="SPREAD"`` places the actors over all nodes of a cluster; with
         ``ready_timeout_s`` the constructor waits until every actor is placed and has compiled its kernels,
         and raises a clear error if the cluster cannot host them all in that time."""
@@ -144,6 +178,7 @@ class RaySampler:
         self._store_values = store_values
         self._precision = precision
         self.publish_timeout_s = publish_timeout_s
+        self.stall_policy = stall_policy
         self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0,
                                       scheduling_strategy=scheduling_strategy)(RayRolloutWorker)
         self._store = WeightsStore.remote()
@@ -156,8 +191,17 @@ class RaySampler:
         self._pending: Dict[Any, int] = {}  # object ref -> worker index
         self._ready: Deque[Dict[str, Any]] = deque()
         self.restarts = 0
+        # watchdog state: per ref (submit time, fragments delivered before it); per worker, whether its
+        # current incarnation has delivered (a fresh actor's first call may still be compiling)
+        self._submitted: Dict[Any, Tuple[float, int]] = {}
+        self._delivered = 0
+        self._last_stall_check = time.monotonic()
+        self._has_delivered = [False] * num_workers
+        self.stalls = 0  # calls the watchdog gave up on (each one restarted its worker)
+        self.stalls_recovered = 0  # stalled calls that ray.get still returned (wait had missed them)
         if ready_timeout_s is not None:
             self._wait_until_ready(ready_timeout_s, cpus_per_worker)
+            self._has_delivered = [True] * num_workers  # compiled: the first call is an ordinary one
 
     def _wait_until_ready(self, timeout_s: float, cpus_per_worker: float) -> None:
         refs = [w.ready.remote() for w in self.workers]
@@ -198,6 +242,7 @@ class RaySampler:
             w = min(range(len(self.workers)), key=lambda i: (in_flight[i], i))
             ref = self.workers[w].collect_latest.remote()
             self._pending[ref] = w
+            self._submitted[ref] = (time.monotonic(), self._delivered)
             in_flight[w] += 1
 
     def get(self) -> Dict[str, Any]:
@@ -205,22 +250,71 @@ class RaySampler:
             self._fill()
             # fetch_local=False: return as soon as a fragment exists on any node, so that the ray.get below
             # times the move to this node (and the deserialisation) apart from the wait for a worker.
-            ready, _ = ray.wait(list(self._pending), num_returns=1, fetch_local=False)
-            ref = ready[0]
-            w = self._pending.pop(ref)
-            try:
-                t0 = time.perf_counter()
-                fragment = ray.get(ref)
-                fragment["fetch_time_s"] = time.perf_counter() - t0
-                return fragment
-            except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
-                self._replace(w, exc)
+            ready, _ = ray.wait(list(self._pending), num_returns=1, fetch_local=False,
+                                timeout=self.stall_policy.check_every_s)
+            # look for stalled calls on a clock, not only when nothing arrives: in the failure seen, the other
+            # workers kept delivering while one worker's calls never came back
+            if time.monotonic() - self._last_stall_check >= self.stall_policy.check_every_s:
+                self._last_stall_check = time.monotonic()
+                fragment = self._check_stalls()
+                if fragment is not None:
+                    return fragment
+            if ready and ready[0] in self._pending:  # (its worker may just have been restarted)
+                fragment = self._take(ready[0])
+                if fragment is not None:
+                    return fragment
 
-    def _replace(self, w: int, exc: Exception) -> None:
-        """A dead worker: discard its in-flight fragments, start a fresh one with a new seed."""
-        log.warning("rollout worker %d died (%s); restarting it", w, type(exc).__name__)
+    def _take(self, ref, timeout: Optional[float] = None) -> Optional[Dict[str, Any]]:
+        """The fragment behind ``ref``, or None when its worker died (it is replaced) or ``timeout`` ran out."""
+        w = self._pending[ref]
+        try:
+            t0 = time.perf_counter()
+            fragment = ray.get(ref, timeout=timeout)
+            fragment["fetch_time_s"] = time.perf_counter() - t0
+        except ray.exceptions.GetTimeoutError:
+            return None
+        except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
+            self._replace(w, exc)
+            return None
+        del self._pending[ref], self._submitted[ref]
+        self._delivered += 1
+        self._has_delivered[w] = True
+        return fragment
+
+    def _check_stalls(self) -> Optional[Dict[str, Any]]:
+        """Restart every worker whose oldest call is stalled (``StallPolicy``); a stalled call that ray.get
+        still returns within a few seconds is delivered instead."""
+        now = time.monotonic()
+        oldest: Dict[int, Any] = {}  # worker -> its oldest pending ref (a worker runs its calls in order)
+        for ref, w in self._pending.items():
+            if w not in oldest or self._submitted[ref][0] < self._submitted[oldest[w]][0]:
+                oldest[w] = ref
+        for w, ref in oldest.items():
+            t_submit, delivered_before = self._submitted[ref]
+            age, overtaken = now - t_submit, self._delivered - delivered_before
+            if not self.stall_policy.is_stalled(age, overtaken, len(self.workers), not self._has_delivered[w]):
+                continue
+            fragment = self._take(ref, timeout=2.0)
+            if fragment is not None:
+                self.stalls_recovered += 1
+                log.warning("rollout worker %d: a fragment finished %.0f s ago was never reported ready; "
+                            "fetched it directly", w, age)
+                return fragment
+            if ref not in self._pending:  # the worker died meanwhile and was replaced
+                continue
+            self.stalls += 1
+            log.warning("rollout worker %d delivered nothing for %.0f s while the other workers delivered %d "
+                        "fragments; restarting it", w, age, overtaken)
+            self._replace(w, TimeoutError("stalled call"), died=False)
+        return None
+
+    def _replace(self, w: int, exc: Exception, died: bool = True) -> None:
+        """A dead (or stalled) worker: discard its in-flight fragments, start a fresh one with a new seed."""
+        if died:
+            log.warning("rollout worker %d died (%s); restarting it", w, type(exc).__name__)
         for ref in [r for r, i in self._pending.items() if i == w]:
-            del self._pending[ref]
+            del self._pending[ref], self._submitted[ref]
+        self._has_delivered[w] = False
         try:
             ray.kill(self.workers[w])
         except Exception:  # already gone
@@ -244,6 +338,7 @@ class RaySampler:
                 pass
         self.workers.clear()
         self._pending.clear()
+        self._submitted.clear()
         try:
             ray.kill(self._store)
         except Exception:

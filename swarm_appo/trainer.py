@@ -490,6 +490,7 @@ class Trainer:
             "perf/env_share": timers["env"] / worker,
             "perf/inference_share": timers["inference"] / worker,
             "perf/worker_restarts": float(self.sampler.restarts),
+            "perf/worker_stalls": float(self.sampler.stalls),
             "charts/elapsed_s": now - self.t_start,
             "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
             "charts/collision_scale": self.schedule["collision_scale"],

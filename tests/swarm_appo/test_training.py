@@ -19,7 +19,7 @@ from swarm_appo.learner import Learner, stack_fragments
 from swarm_appo.metrics import wait_for_wandb_history
 from swarm_appo.model import model_factory
 from swarm_appo.rollout import RolloutWorker
-from swarm_appo.sampling import RaySampler, WeightsStore, init_local_ray
+from swarm_appo.sampling import RaySampler, StallPolicy, WeightsStore, init_local_ray
 from swarm_appo.trainer import train
 from swarm_appo.vtrace import vtrace
 
@@ -253,7 +253,8 @@ def test_ray_run_with_two_actors_writes_run_dir(tmp_path, local_ray):
     assert list((res.run_dir / "wandb").glob("offline-run-*"))
     records = read_metrics(res.run_dir)
     *records, final = records
-    assert all({"lag/min", "lag/mean", "lag/max", "losses/policy_loss", "perf/worker_restarts"} <= set(r)
+    assert all({"lag/min", "lag/mean", "lag/max", "losses/policy_loss", "perf/worker_restarts",
+                "perf/worker_stalls"} <= set(r)
                for r in records)
     assert {"eval/dist", "eval_random/dist", "eval/dist_ratio_to_random"} <= set(final)
     # one node: every fragment is fetched from the learner's own object store
@@ -282,6 +283,56 @@ def test_killed_rollout_actor_is_replaced_and_sampling_goes_on(tmp_path, local_r
         assert {f["worker_id"] for f in frags} == {0, 1}, "the replacement worker must produce fragments"
         assert victim not in sampler.worker_pids()
     finally:
+        sampler.close()
+
+
+@pytest.mark.parametrize("age_s, overtaken, num_workers, first_call, stalled", [
+    (11.0, 50, 3, False, True),     # both workers delivered 25 fragments each meanwhile
+    (11.0, 49, 3, False, False),    # ... one short of it
+    (9.0, 500, 3, False, False),    # too young, however many overtook it
+    (60.0, 500, 3, True, False),    # a fresh actor's first call may still be compiling
+    (121.0, 500, 3, True, True),
+    (800.0, 10_000, 1, False, False),  # nobody can overtake a lone worker ...
+    (900.0, 0, 1, False, True),     # ... so only the hard limit applies
+])
+def test_stall_policy(age_s, overtaken, num_workers, first_call, stalled):
+    assert StallPolicy().is_stalled(age_s, overtaken, num_workers, first_call) == stalled
+
+
+def test_a_hung_rollout_actor_is_restarted_by_the_watchdog(tmp_path, local_ray):
+    """A worker whose calls never come back while the other delivers (its process frozen with SIGSTOP
+    here; a lost reply on a two-node cluster in the failure seen) is killed and replaced."""
+    cfg = tiny_config(tmp_path, "h")
+    make_model = model_factory(cfg.env.obs_layout(), cfg.model)
+    policy = StallPolicy(min_age_s=1.0, overtakes_per_worker=3, check_every_s=0.1)
+    sampler = RaySampler(cfg.env, make_model, num_workers=2, envs_per_worker=1, rollout=8, seed=0,
+                         max_in_flight=4, stall_policy=policy, ready_timeout_s=300)  # both started and compiled
+    frozen = None
+    try:
+        sampler.publish(0, make_model().state_dict())
+        first = {sampler.get()["worker_id"] for _ in range(8)}
+        assert first == {0, 1}
+        frozen = sampler.worker_pids()[0]
+        os.kill(frozen, signal.SIGSTOP)
+        after = []
+        while sampler.restarts == 0 and len(after) < 1000:  # the frozen worker is given up on after 6 others
+            after.append(sampler.get()["worker_id"])
+        assert sampler.stalls == 1 and sampler.restarts == 1 and sampler.stalls_recovered == 0
+        # not before: the worker's calls finished before the freeze (2 in flight at most) are all it delivered
+        assert after.count(1) >= 6 and after.count(0) <= 2, after
+        deadline = time.monotonic() + 180  # a hang guard, not a speed limit: the replacement starts from scratch
+        replacement_delivered = False
+        while not replacement_delivered and time.monotonic() < deadline:
+            replacement_delivered = sampler.get()["worker_id"] == 0
+        assert replacement_delivered
+        assert sampler.restarts == 1, "a fresh actor's first call (still starting) is not taken for stalled"
+        assert frozen not in sampler.worker_pids()
+    finally:
+        if frozen is not None:
+            try:
+                os.kill(frozen, signal.SIGKILL)
+            except ProcessLookupError:
+                pass  # ray.kill took it
         sampler.close()
 
 
