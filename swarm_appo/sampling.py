@@ -34,9 +34,8 @@ import signal
 import socket
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
-from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 import ray
@@ -76,6 +75,14 @@ class StallPolicy:
         if age_s < (self.first_call_min_age_s if first_call else self.min_age_s):
             return False
         return num_workers > 1 and overtaken >= self.overtakes_per_worker * (num_workers - 1)
+
+
+class _Call(NamedTuple):
+    """One outstanding rollout call: its worker, when it was sent, and how many fragments had been delivered
+    by then (what ``StallPolicy`` counts as overtaking)."""
+    worker: int
+    sent_at: float
+    delivered_before: int
 
 
 def fragment_nbytes(fragment: Dict[str, Any]) -> int:
@@ -188,12 +195,10 @@ class RaySampler:
             self.workers.append(self._spawn(i, 0))
             self._incarnation.append(0)
         self.max_in_flight = max_in_flight
-        self._pending: Dict[Any, int] = {}  # object ref -> worker index
-        self._ready: Deque[Dict[str, Any]] = deque()
+        self._pending: Dict[Any, _Call] = {}  # object ref -> its call, oldest first
         self.restarts = 0
-        # watchdog state: per ref (submit time, fragments delivered before it); per worker, whether its
-        # current incarnation has delivered (a fresh actor's first call may still be compiling)
-        self._submitted: Dict[Any, Tuple[float, int]] = {}
+        # watchdog state: fragments delivered so far; per worker, whether its current incarnation has delivered
+        # (a fresh actor's first call may still be compiling)
         self._delivered = 0
         self._last_stall_check = time.monotonic()
         self._has_delivered = [False] * num_workers
@@ -236,13 +241,12 @@ class RaySampler:
     def _fill(self) -> None:
         """Keep every worker busy, round-robin, up to the in-flight bound."""
         in_flight = [0] * len(self.workers)
-        for w in self._pending.values():
-            in_flight[w] += 1
+        for call in self._pending.values():
+            in_flight[call.worker] += 1
         while len(self._pending) < self.max_in_flight:
             w = min(range(len(self.workers)), key=lambda i: (in_flight[i], i))
             ref = self.workers[w].collect_latest.remote()
-            self._pending[ref] = w
-            self._submitted[ref] = (time.monotonic(), self._delivered)
+            self._pending[ref] = _Call(w, time.monotonic(), self._delivered)
             in_flight[w] += 1
 
     def get(self) -> Dict[str, Any]:
@@ -266,7 +270,7 @@ class RaySampler:
 
     def _take(self, ref, timeout: Optional[float] = None) -> Optional[Dict[str, Any]]:
         """The fragment behind ``ref``, or None when its worker died (it is replaced) or ``timeout`` ran out."""
-        w = self._pending[ref]
+        w = self._pending[ref].worker
         try:
             t0 = time.perf_counter()
             fragment = ray.get(ref, timeout=timeout)
@@ -274,9 +278,10 @@ class RaySampler:
         except ray.exceptions.GetTimeoutError:
             return None
         except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
-            self._replace(w, exc)
+            log.warning("rollout worker %d died (%s); restarting it", w, type(exc).__name__)
+            self._replace(w)
             return None
-        del self._pending[ref], self._submitted[ref]
+        del self._pending[ref]
         self._delivered += 1
         self._has_delivered[w] = True
         return fragment
@@ -286,12 +291,11 @@ class RaySampler:
         still returns within a few seconds is delivered instead."""
         now = time.monotonic()
         oldest: Dict[int, Any] = {}  # worker -> its oldest pending ref (a worker runs its calls in order)
-        for ref, w in self._pending.items():
-            if w not in oldest or self._submitted[ref][0] < self._submitted[oldest[w]][0]:
-                oldest[w] = ref
+        for ref, call in self._pending.items():  # (insertion order: the first seen per worker is its oldest)
+            oldest.setdefault(call.worker, ref)
         for w, ref in oldest.items():
-            t_submit, delivered_before = self._submitted[ref]
-            age, overtaken = now - t_submit, self._delivered - delivered_before
+            call = self._pending[ref]
+            age, overtaken = now - call.sent_at, self._delivered - call.delivered_before
             if not self.stall_policy.is_stalled(age, overtaken, len(self.workers), not self._has_delivered[w]):
                 continue
             fragment = self._take(ref, timeout=2.0)
@@ -305,15 +309,13 @@ class RaySampler:
             self.stalls += 1
             log.warning("rollout worker %d delivered nothing for %.0f s while the other workers delivered %d "
                         "fragments; restarting it", w, age, overtaken)
-            self._replace(w, TimeoutError("stalled call"), died=False)
+            self._replace(w)
         return None
 
-    def _replace(self, w: int, exc: Exception, died: bool = True) -> None:
+    def _replace(self, w: int) -> None:
         """A dead (or stalled) worker: discard its in-flight fragments, start a fresh one with a new seed."""
-        if died:
-            log.warning("rollout worker %d died (%s); restarting it", w, type(exc).__name__)
-        for ref in [r for r, i in self._pending.items() if i == w]:
-            del self._pending[ref], self._submitted[ref]
+        for ref in [r for r, call in self._pending.items() if call.worker == w]:
+            del self._pending[ref]
         self._has_delivered[w] = False
         try:
             ray.kill(self.workers[w])
@@ -338,7 +340,6 @@ class RaySampler:
                 pass
         self.workers.clear()
         self._pending.clear()
-        self._submitted.clear()
         try:
             ray.kill(self._store)
         except Exception:
