@@ -160,7 +160,7 @@ def one_node_row(workers: int, seconds: float, tmp: Path, max_workers: int, repe
     import ray
 
     from swarm_appo.config import load_config
-    from swarm_appo.sampling import init_local_ray
+    from swarm_appo.ray_sampling import init_local_ray
     from swarm_appo.trainer import train
 
     init_local_ray(num_cpus=max_workers + 1)  # logical CPUs: every worker and the learner get one

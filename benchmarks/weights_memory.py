@@ -60,7 +60,7 @@ def main(argv: Sequence[str] = None) -> int:
 
     from swarm_appo.config import ConfigError, load_config
     from swarm_appo.model import model_factory
-    from swarm_appo.sampling import RaySampler, WeightsStore, init_local_ray
+    from swarm_appo.ray_sampling import RaySampler, WeightsStore, init_local_ray
 
     try:
         cfg = load_config(args.config, [])

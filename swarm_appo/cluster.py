@@ -1,6 +1,6 @@
 """Running on a Ray cluster: how many rollout workers fit, where the learner sits, and ``cluster.json``.
 
-    init_ray("auto")                                   # swarm_appo.sampling: join the cluster
+    init_ray("auto")                                   # swarm_appo.ray_sampling: join the cluster
     num_workers = cluster_rollout_workers()            # CPUs of all nodes, minus one for the learner
     placement = Placement("auto", device)              # the nodes and the learner's node
     placement.set_workers(sampler.worker_locations())  # where each rollout actor was placed

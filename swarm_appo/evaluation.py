@@ -399,7 +399,7 @@ def _run_on_ray(tasks, specs, workers, address, placement):
     import ray
     from ray.util import ActorPool
 
-    from swarm_appo.sampling import init_local_ray, init_ray
+    from swarm_appo.ray_sampling import init_local_ray, init_ray
 
     started = not ray.is_initialized()
     if address is None:

@@ -36,7 +36,7 @@ from swarm_appo.learner import Learner
 from swarm_appo.metrics import MetricsLogger, process_age_s, system_metrics
 from swarm_appo.model import model_factory
 from swarm_appo.precision import resolve_precision
-from swarm_appo.sampling import RaySampler, SerialSampler, check_reachable, fragment_nbytes, init_ray
+from swarm_appo.sampling import SerialSampler, fragment_nbytes
 
 log = logging.getLogger(__name__)
 
@@ -311,6 +311,8 @@ def _start_sampling(cfg: TrainConfig, make_model, learner: Learner, device: torc
                                 sampler_seed, store_values=store_values,
                                 precision=cfg.runner.inference_precision)
     else:
+        from swarm_appo.ray_sampling import RaySampler, init_ray  # only here: a serial run needs no Ray
+
         init_ray(cfg.runner.ray_address)
         num_workers = num_rollout_workers(cfg)
         cluster_options = {}
@@ -370,6 +372,8 @@ class Trainer:
         # A fresh run may start from another run's policy; whether it fits is checked before a run dir exists.
         init_state = init_policy(cfg) if resume_dir is None and cfg.runner.init_checkpoint else None
         if cfg.runner.ray_address is not None and not cfg.runner.serial:
+            from swarm_appo.ray_sampling import check_reachable
+
             check_reachable(cfg.runner.ray_address)  # before a run dir exists: a typo leaves nothing behind
         self.device = pick_device(cfg.runner.device)
         precision, why = resolve_precision(cfg.runner.precision, self.device, cfg.model.size)

@@ -124,7 +124,7 @@ def cluster():
 
 OTHER_RAY = """
 import sys, ray
-from swarm_appo.sampling import init_local_ray
+from swarm_appo.ray_sampling import init_local_ray
 init_local_ray(num_cpus=1)
 print("ready", flush=True)
 sys.stdin.read()  # until the test closes the pipe

@@ -19,7 +19,7 @@ from swarm_appo.learner import Learner, stack_fragments
 from swarm_appo.metrics import wait_for_wandb_history
 from swarm_appo.model import model_factory
 from swarm_appo.rollout import RolloutWorker
-from swarm_appo.sampling import RaySampler, StallPolicy, WeightsStore, init_local_ray
+from swarm_appo.ray_sampling import RaySampler, StallPolicy, WeightsStore, init_local_ray
 from swarm_appo.trainer import train
 from swarm_appo.vtrace import vtrace
 
@@ -222,7 +222,7 @@ def local_ray():
 def test_cluster_addresses_are_checked_before_ray_is_asked():
     import socket
 
-    from swarm_appo.sampling import check_reachable
+    from swarm_appo.ray_sampling import check_reachable
     with socket.socket() as server:  # something listening: accepted
         server.bind(("127.0.0.1", 0))
         server.listen()
