@@ -100,6 +100,9 @@ METRICS: Dict[str, str] = {
     # system/: resources of the learner process (system_metrics)
     "system/rss_mb": "resident memory of the learner process (MiB)",
     "system/max_rss_mb": "peak resident memory of the learner process (MiB)",
+    "system/gpu_mem_mb": "GPU memory held by the learner's tensors (MiB; learner on a CUDA device only)",
+    "system/gpu_max_mem_mb": "peak GPU memory of the learner's tensors since the start (MiB; CUDA only)",
+    "system/gpu_util": "GPU utilisation over the last sample period, % (CUDA only, where NVML is installed)",
 }
 
 
@@ -174,14 +177,30 @@ def process_age_s() -> Optional[float]:
         return None
 
 
-def system_metrics() -> Dict[str, float]:
-    """Memory of this process: ``system/rss_mb`` (current, Linux only) and ``system/max_rss_mb`` (peak)."""
+def system_metrics(device: Any = None) -> Dict[str, float]:
+    """Memory of this process: ``system/rss_mb`` (current, Linux only) and ``system/max_rss_mb`` (peak); with a
+    CUDA ``device`` (the learner's) also its GPU memory and utilisation (``system/gpu_*``)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
     out = {"system/max_rss_mb": peak / (2**20 if sys.platform == "darwin" else 2**10)}
     try:
         with open("/proc/self/statm") as f:
             out["system/rss_mb"] = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     except (OSError, ValueError, IndexError):
+        pass
+    if device is not None and getattr(device, "type", None) == "cuda":
+        out.update(gpu_metrics(device))
+    return out
+
+
+def gpu_metrics(device: Any) -> Dict[str, float]:
+    """``system/gpu_mem_mb``, ``system/gpu_max_mem_mb`` and, where NVML answers, ``system/gpu_util``."""
+    import torch
+
+    out = {"system/gpu_mem_mb": torch.cuda.memory_allocated(device) / 2**20,
+           "system/gpu_max_mem_mb": torch.cuda.max_memory_allocated(device) / 2**20}
+    try:
+        out["system/gpu_util"] = float(torch.cuda.utilization(device))
+    except Exception:  # no NVML (pynvml / nvidia-ml-py) in this environment: leave the utilisation out
         pass
     return out
 

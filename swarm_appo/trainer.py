@@ -504,7 +504,7 @@ class Trainer:
             record["perf/startup_s"] = self.startup_s  # only the process's first run measures a start-up
             _STARTUP_LOGGED = True
         record.update(fetch_metrics(timers, driver))
-        record.update(system_metrics())
+        record.update(system_metrics(self.device))
         return record
 
     def checkpoint(self) -> Path:

@@ -120,6 +120,27 @@ def test_standard_names_are_grouped():
     assert stats["system/max_rss_mb"] > 1.0 and all(k.startswith("system/") for k in stats)
 
 
+def test_system_metrics_report_the_gpu_of_a_cuda_learner_only(monkeypatch):
+    """The CUDA branch without a GPU: torch.cuda's counters faked, so the names, units and the fallback
+    without NVML are checked here; the real figures come from a GPU run (benchmarks/gpu_check.sh)."""
+    import torch
+
+    assert not any(k.startswith("system/gpu") for k in system_metrics(torch.device("cpu")))
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device=None: 3 * 2**20)
+    monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda device=None: 5 * 2**20)
+    monkeypatch.setattr(torch.cuda, "utilization", lambda device=None: 87)
+    stats = system_metrics(torch.device("cuda", 0))
+    assert (stats["system/gpu_mem_mb"], stats["system/gpu_max_mem_mb"], stats["system/gpu_util"]) == (3.0, 5.0, 87.0)
+    assert {k for k in stats if k.startswith("system/gpu")} <= set(METRICS)
+
+    def no_nvml(device=None):
+        raise ModuleNotFoundError("pynvml")
+
+    monkeypatch.setattr(torch.cuda, "utilization", no_nvml)
+    stats = system_metrics(torch.device("cuda", 0))
+    assert "system/gpu_util" not in stats and stats["system/gpu_max_mem_mb"] == 5.0
+
+
 def test_every_end_of_run_evaluation_metric_is_documented():
     from swarm_appo.evaluate import SUMMARY_METRICS
 

@@ -1,0 +1,143 @@
+"""The learner alone on a device, at the config's sizes: how many agent steps per second it can take in, fp32 vs
+bf16, and its peak device memory (issue 16 items 1 and 5: the GPU path, bf16 on a GPU).
+
+    python -m benchmarks.gpu_learner [--device cuda] [--encoders se3_graphormer,se3_kattention]
+                                     [--precisions fp32,bf16] [--seconds 20] [--config configs/paper.yaml]
+
+One batch of real fragments (the trainer's batch: fragments until ``algo.batch_size`` agent steps) is collected
+once on the CPU by a RolloutWorker of the config's environment; then the learner trains on it again and again,
+its current policy version stamped on the batch each time (so no sample is masked as stale). learner agent-steps/s
+= agent steps of the batch / time of one ``Learner.train`` call (all epochs; CUDA synchronised), best of the timed
+calls after one warm-up call. That is the rate at which rollout workers must deliver to keep this learner busy.
+Runs on a CPU too (``--device cpu``), which is how it is checked where there is no GPU.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import sys
+import time
+from typing import Dict, List, Optional, Sequence
+
+import torch
+
+from benchmarks.common import ROOT, append_results, commit, load_average, machine
+
+
+def device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return f"{torch.cuda.get_device_name(device)} (torch {torch.__version__}, CUDA {torch.version.cuda})"
+    return f"cpu (torch {torch.__version__}, {torch.get_num_threads()} threads)"
+
+
+def collect_batch(cfg) -> List[Dict]:
+    """Fragments from one CPU rollout worker until the batch holds ``algo.batch_size`` agent steps."""
+    from swarm_appo.model import model_factory
+    from swarm_appo.rollout import RolloutWorker
+
+    make = model_factory(cfg.env.obs_layout(), cfg.model)
+    threads = torch.get_num_threads()  # a RolloutWorker takes one thread; the learner gets them back below
+    worker = RolloutWorker(cfg.env, make, cfg.runner.envs_per_worker, cfg.algo.rollout, seed=cfg.runner.seed)
+    worker.set_weights(0, make().state_dict())
+    batch, steps = [], 0
+    while steps < cfg.algo.batch_size:
+        batch.append(worker.collect())
+        steps += batch[-1]["num_agent_steps"]
+    torch.set_num_threads(threads)
+    return batch
+
+
+def time_learner(cfg, batch: List[Dict], device: torch.device, precision: str, seconds: float) -> Dict[str, float]:
+    from swarm_appo.learner import Learner
+    from swarm_appo.model import model_factory
+
+    torch.manual_seed(cfg.runner.seed)
+    learner = Learner(model_factory(cfg.env.obs_layout(), cfg.model)(), cfg.algo, device, seed=cfg.runner.seed,
+                      precision=precision)
+    steps = sum(f["num_agent_steps"] for f in batch)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+
+    def one_call() -> float:
+        for f in batch:
+            f["policy_version"][...] = learner.version  # fresh data every call: nothing masked as stale
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        learner.train(batch)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return time.perf_counter() - t0
+
+    one_call()  # warm-up: allocations, kernel selection
+    times, t_end = [], time.perf_counter() + seconds
+    while time.perf_counter() < t_end or len(times) < 2:
+        times.append(one_call())
+    best = min(times)
+    out = {"steps_per_s": steps / best, "call_s": best, "calls": len(times), "batch_steps": steps,
+           "updates_per_call": cfg.algo.num_epochs * -(-steps // cfg.algo.batch_size)}
+    if device.type == "cuda":
+        out["peak_mem_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--encoders", default="se3_graphormer,se3_kattention", help="comma-separated encoder names")
+    p.add_argument("--precisions", default="fp32,bf16", help="comma-separated: fp32, bf16")
+    p.add_argument("--seconds", type=float, default=20.0, help="timed training per (encoder, precision)")
+    p.add_argument("--config", default=str(ROOT / "configs" / "paper.yaml"))
+    p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
+    p.add_argument("overrides", nargs="*", help="config overrides (key=value) for every encoder")
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    from swarm_appo.config import ConfigError, load_config
+
+    device = torch.device(args.device)
+    encoders = [e.strip() for e in args.encoders.split(",") if e.strip()]
+    precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
+    bad = [p for p in precisions if p not in ("fp32", "bf16")]
+    if bad:
+        raise SystemExit(f"--precisions: {bad} not in ['fp32', 'bf16']")
+    load_before = load_average()
+    lines = ["| encoder | precision | batch (agent steps) | updates/call | call (s) | learner agent-steps/s | "
+             "vs fp32 | peak device MiB |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for name in encoders:
+        try:
+            cfg = load_config(args.config, [f"model.encoder={name}", "model.symmetry=null", *args.overrides])
+        except ConfigError as exc:
+            raise SystemExit(f"config error: {exc}")
+        batch = collect_batch(cfg)
+        fp32_rate = None
+        for precision in precisions:
+            r = time_learner(cfg, batch, device, precision, args.seconds)
+            fp32_rate = r["steps_per_s"] if precision == "fp32" else fp32_rate
+            ratio = f"{r['steps_per_s'] / fp32_rate:.2f}x" if fp32_rate and precision != "fp32" else "-"
+            mem = f"{r['peak_mem_mb']:,.0f}" if "peak_mem_mb" in r else "-"
+            lines.append(f"| {name} | {precision} | {r['batch_steps']:,} | {r['updates_per_call']} | "
+                         f"{r['call_s']:.3f} | {r['steps_per_s']:,.0f} | {ratio} | {mem} |")
+            print(lines[-1], flush=True)
+    text = "\n".join([
+        f"## gpu_learner — {datetime.datetime.now().isoformat(timespec='seconds')}",
+        "",
+        f"- command: `python -m benchmarks.gpu_learner {' '.join(argv if argv is not None else sys.argv[1:])}`",
+        f"- commit: {commit(['encoders', 'swarm_appo', 'configs'])}",
+        f"- device: {device_name(device)}",
+        f"- machine: {machine()}; load average before: {load_before}, after: {load_average()}",
+        f"- config: `{args.config}`{' with ' + ' '.join(args.overrides) if args.overrides else ''}; learner "
+        "agent-steps/s = agent steps of one batch / best time of one Learner.train call (all epochs)",
+        "",
+        *lines,
+    ])
+    print(text)
+    if not args.no_append:
+        append_results(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
