@@ -14,7 +14,8 @@ training is an ordinary run directory ``<out>/runs/<train scenario>/<arch>-<symm
 a finished one holds ``done.json`` and is skipped next time, an interrupted one resumes from its last checkpoint
 (one killed before its first checkpoint starts again), and an evaluated one keeps its ``eval_table1/``. So a
 killed experiment resumes where it stopped, and the table fills in row by row. Raising ``--agent-steps`` trains
-every finished run on from its last checkpoint to the new budget (and evaluates it again).
+every finished run on from its last checkpoint to the new budget (and evaluates it again); with a budget-tied lr
+schedule (``algo.lr_schedule=linear``) that is refused, since the decay would restart mid-run.
 
 Output: ``<out>/table1.md`` (also appended to benchmarks/RESULTS.md unless ``--no-results``) with one table
 per (training scenario, evaluation scenario): rows x the paper's columns, mean +- std over seeds of each seed's
@@ -347,6 +348,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (ConfigError, ValueError) as exc:
         p.error(str(exc))
     out = Path(args.out)
+    decaying = [str(run_dir(out, sc, row, seed)) for sc, row, seed, cfg in plan
+                if cfg.algo.lr_schedule != "constant" and is_short(run_dir(out, sc, row, seed), args.agent_steps)]
+    if decaying and not args.report_only:  # its lr reached ~0 at the old budget: training on restarts the decay
+        p.error(f"--agent-steps {args.agent_steps:,} raises the budget of finished runs whose algo.lr_schedule "
+                f"ties the lr to their budget ({', '.join(decaying)}): training them on would restart the decay "
+                f"mid-run, unlike a fresh run at that budget. Use another --out (fresh runs) or a constant lr.")
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     load_before = load_average()
 

@@ -123,6 +123,18 @@ def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_thread):
     assert steps == sorted(steps) and len(set(steps)) == len(steps)  # one history, no step twice
 
 
+def test_a_larger_budget_is_refused_for_runs_whose_lr_decays_to_their_budget(tmp_path, one_thread, capsys):
+    linear = ["--rows", "deepsets/none", "--seeds", "0", "--set", "algo.lr_schedule=linear"]
+    assert run(tmp_path, *linear) == 0
+    rd = tmp_path / "exp" / "runs" / "static_same_goal" / "deepsets-none" / "seed0"
+    before = (rd / "done.json").read_text()
+    argv = [a if a != "768" else "1536" for a in TINY]
+    with pytest.raises(SystemExit) as e:
+        table1.main(["--out", str(tmp_path / "exp"), "--figures", str(tmp_path / "fig"), *argv, *linear])
+    assert e.value.code == 2 and "restart the decay" in capsys.readouterr().err
+    assert (rd / "done.json").read_text() == before and (rd / "eval_table1").exists()  # nothing touched
+
+
 def test_smooth_is_a_centred_running_mean():
     import numpy as np
 
