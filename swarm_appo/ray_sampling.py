@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 # A store that takes longer than this to accept one version is stuck (it takes milliseconds): fail with a clear
 # error rather than hang the learner for good (seen once in ~12 test-suite runs, never understood).
 PUBLISH_TIMEOUT_S = 300.0
+# A worker that dies this often in a row without delivering a fragment ends the run with its error (a crash now and
+# then is restarted; a worker that cannot even start would otherwise be restarted for ever).
+MAX_DEATHS_IN_A_ROW = 5
 
 
 @dataclass(frozen=True)
@@ -165,6 +168,9 @@ class RaySampler:
         self._delivered = 0
         self._last_stall_check = time.monotonic()
         self._has_delivered = [False] * num_workers
+        # per worker: deaths since it last delivered; a worker that keeps dying before its first fragment has a
+        # fault no restart fixes (e.g. its class no longer imports: code edited under a running job, seen once)
+        self._deaths_in_a_row = [0] * num_workers
         self.stalls = 0  # calls the watchdog gave up on (each one restarted its worker)
         self.stalls_recovered = 0  # stalled calls that ray.get still returned (wait had missed them)
         if ready_timeout_s is not None:
@@ -241,12 +247,18 @@ class RaySampler:
         except ray.exceptions.GetTimeoutError:
             return None
         except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
+            self._deaths_in_a_row[w] += 1
+            if self._deaths_in_a_row[w] >= MAX_DEATHS_IN_A_ROW:
+                raise RuntimeError(f"rollout worker {w} died {self._deaths_in_a_row[w]} times in a row without "
+                                   f"delivering a fragment: restarting it cannot help ({type(exc).__name__}: "
+                                   f"{str(exc).strip()[-2000:]})") from exc
             log.warning("rollout worker %d died (%s); restarting it", w, type(exc).__name__)
             self._replace(w)
             return None
         del self._pending[ref]
         self._delivered += 1
         self._has_delivered[w] = True
+        self._deaths_in_a_row[w] = 0
         return fragment
 
     def _check_stalls(self) -> Optional[Dict[str, Any]]:

@@ -299,6 +299,27 @@ def test_stall_policy(age_s, overtaken, num_workers, first_call, stalled):
     assert StallPolicy().is_stalled(age_s, overtaken, num_workers, first_call) == stalled
 
 
+class _BrokenFactory:
+    """A model factory that fails inside every rollout actor, as an actor whose code cannot load does."""
+
+    def __call__(self):
+        raise RuntimeError("this policy cannot be built")
+
+
+def test_a_worker_that_dies_before_every_fragment_ends_the_run_with_its_error(tmp_path, local_ray):
+    cfg = tiny_config(tmp_path, "d")
+    sampler = RaySampler(cfg.env, _BrokenFactory(), num_workers=1, envs_per_worker=1, rollout=8, seed=0,
+                         max_in_flight=1)
+    try:
+        with pytest.raises(RuntimeError, match="died 5 times in a row") as e:
+            for _ in range(50):
+                sampler.get()
+        assert "this policy cannot be built" in str(e.value)
+        assert sampler.restarts == 4  # restarted after each of the first four deaths, then given up
+    finally:
+        sampler.close()
+
+
 def test_a_hung_rollout_actor_is_restarted_by_the_watchdog(tmp_path, local_ray):
     """A worker whose calls never come back while the other delivers (its process frozen with SIGSTOP
     here; a lost reply on a two-node cluster in the failure seen) is killed and replaced."""
