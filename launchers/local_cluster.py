@@ -112,6 +112,7 @@ class LocalCluster:
         self.keep_temp_dir = keep_temp_dir
         self.proc: Optional[subprocess.Popen] = None
         self.temp_dir = ""
+        self._group_killed = False
         self.info: Dict[str, Any] = {}
 
     @property
@@ -205,8 +206,27 @@ class LocalCluster:
                         continue
         if self.proc is not None and self.proc.stdin and not self.proc.stdin.closed:
             self.proc.stdin.close()
+        if self.proc is not None and not self._group_killed:
+            self._group_killed = True  # once: later, the group id could belong to someone else
+            try:  # stragglers of the keeper's session (its nodes' workers), which are ours alone
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
         if self.temp_dir and not self.keep_temp_dir:
+            self._remove_temp_dir()
+
+    def _remove_temp_dir(self, timeout_s: float = 30.0) -> None:
+        """Remove the temp dir; retried, since a Ray process that is still exiting can write a last log file
+        into a folder being removed (seen once: the folder outlived ``stop``)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
             shutil.rmtree(self.temp_dir, ignore_errors=True)
+            if not os.path.exists(self.temp_dir):
+                return
+            if time.monotonic() > deadline:
+                left = [str(p) for p in Path(self.temp_dir).rglob("*")][:10]
+                raise RuntimeError(f"could not remove the cluster's temp dir {self.temp_dir}; left: {left}")
+            time.sleep(0.2)
 
     def __enter__(self) -> "LocalCluster":
         return self.start()

@@ -233,9 +233,17 @@ class RaySampler:
                 if fragment is not None:
                     return fragment
             if ready and ready[0] in self._pending:  # (its worker may just have been restarted)
-                fragment = self._take(ready[0])
+                fragment = self._take(self._oldest_ready())
                 if fragment is not None:
                     return fragment
+
+    def _oldest_ready(self):
+        """Of the calls that are ready now, the one sent first: fragments come in the order they were asked
+        for (bounding their policy lag), and a dead worker's failed calls are handled (and it is replaced)
+        before the live workers' newer fragments, not whenever Ray happens to list them first."""
+        pending = list(self._pending)
+        ready, _ = ray.wait(pending, num_returns=len(pending), timeout=0, fetch_local=False)
+        return min(ready, key=lambda ref: self._pending[ref].sent_at)
 
     def _take(self, ref, timeout: Optional[float] = None) -> Optional[Dict[str, Any]]:
         """The fragment behind ``ref``, or None when its worker died (it is replaced) or ``timeout`` ran out."""
