@@ -6,6 +6,12 @@ those alone, numba would keep loading the old compiled kernels. So the cache liv
 hash of every source file of the package: any change to any of them selects a fresh folder (and recompiles
 once), and going back to an earlier version finds its folder again.
 
+The folder does not depend on where the package lies: numba's own locator files a kernel under a hash of its
+file's absolute path, so every copy of the same sources (a clean clone, the working directory a Ray job unpacks
+on each node) compiled from scratch. ``_KeyedLocator`` files this package's kernels under
+``<root>/<source hash>/<package name>`` with the source hash as the freshness stamp: any copy of one version
+of the sources shares one set of compiled kernels. Other numba users keep numba's locators.
+
 The root is ``$NUMBA_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/swarm_appo/numba`` (``~/.cache/...``).
 Every kernel module decorates with this module's ``njit`` (numba's ``njit``, defined inside ``keyed_cache()``),
 so a kernel caches in the keyed folder however its module is imported (``quad_env/__init__.py`` imports nothing
@@ -58,14 +64,59 @@ def _hash_of(package_dir: Path) -> str:
     return source_hash(package_dir)  # once per process: the kernels of one process come from one version
 
 
+@functools.lru_cache(maxsize=None)
+def _install_locator(package_dir: Path) -> bool:
+    """Put a locator for ``package_dir``'s kernels first in numba's list (once per process and package copy).
+    False where numba's internals differ from the ones this was written against (numba 0.59-0.68): the kernels
+    then cache path-keyed (``njit`` below sets the folder), which is slower to warm but as correct."""
+    from numba.core import caching
+
+    impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)  # (renamed in 0.6x)
+    base = getattr(caching, "_CacheLocator", None)
+    if base is None or not isinstance(getattr(impl, "_locator_classes", None), list):
+        return False
+
+    class _KeyedLocator(base):
+        """This package's kernels, in a folder named after the sources' hash and the package, not its path."""
+
+        def __init__(self, py_func):
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = str(cache_root() / _hash_of(package_dir) / package_dir.name)
+
+        def get_cache_path(self):
+            return self._cache_path
+
+        def get_source_stamp(self):
+            return _hash_of(package_dir)  # the folder is per version already; this guards a hand-copied index
+
+        def get_disambiguator(self):
+            return str(self._lineno)
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if Path(py_file).resolve().parent != package_dir:
+                return None  # someone else's kernel: numba's own locators
+            self = cls(py_func)
+            try:
+                self.ensure_cache_path()
+            except OSError:  # not writable: let numba's locators find a place
+                return None
+            return self
+
+    impl._locator_classes.insert(0, _KeyedLocator)
+    return True
+
+
 def njit(*args, **options):
-    """``numba.njit(**options)`` (the kernels pass ``cache=True``), defined inside ``keyed_cache()`` so the
-    kernel caches in the folder of this version of the sources. Use as ``@njit(cache=True)`` or ``@njit``."""
+    """``numba.njit(**options)`` (the kernels pass ``cache=True``) whose cache is the folder of this version of
+    the sources, wherever the package lies. Use as ``@njit(cache=True)`` or ``@njit``."""
     import numba
+
+    _install_locator(PACKAGE_DIR)
 
     def decorate(fn):
         previous = numba.config.CACHE_DIR
-        numba.config.CACHE_DIR = str(cache_root() / _hash_of(PACKAGE_DIR))
+        numba.config.CACHE_DIR = str(cache_root() / _hash_of(PACKAGE_DIR))  # for numba's locators (fallback)
         try:
             return numba.njit(**options)(fn)
         finally:

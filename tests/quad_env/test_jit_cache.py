@@ -118,3 +118,43 @@ def test_light_imports_load_neither_numba_nor_torch():
     assert loaded("import encoders", ["numba"]) == ["False"]
     assert loaded("import swarm_appo.config", ["torch", "numba"]) == ["False", "False"]
     assert loaded("from quad_env import VecQuadEnv", ["numba"]) == ["True"]  # the simulator on first use
+
+
+def test_copies_of_the_same_sources_share_compiled_kernels_and_other_numba_users_are_untouched(tmp_path):
+    """numba's own locator files a kernel under its file's absolute path, so each copy of the package (a clean
+    clone, a Ray job's unpacked working directory on each node) compiled from scratch; the keyed locator files it
+    under the sources' hash. A kernel outside the package still caches where numba puts it."""
+    cache = tmp_path / "cache"
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "other_kernels.py").write_text("from numba import njit\n\n@njit(cache=True)\ndef plus(x):\n"
+                                              "    return x + 1.0\n")
+    script = textwrap.dedent("""
+        import sys
+        sys.path[:0] = [{copy!r}, {foreign!r}]
+        from pkg.kernels import scaled
+        from other_kernels import plus
+        print(scaled(2.0), sum(scaled.stats.cache_hits.values()), scaled._cache._cache_path,
+              plus(1.0), plus._cache._cache_path)
+    """)
+
+    def run_copy(name, constant):
+        copy = tmp_path / name
+        copy.mkdir()
+        make_package(copy, constant)
+        kernels = (copy / "pkg" / "kernels.py").read_text()
+        (copy / "pkg" / "kernels.py").write_text(kernels.replace("from numba import njit",
+                                                                 "from pkg.jit_cache import njit"))
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+        out = subprocess.run([sys.executable, "-c", script.format(copy=str(copy), foreign=str(foreign))],
+                             capture_output=True, text=True, env=env, check=True).stdout.split()
+        return float(out[0]), int(out[1]), out[2], float(out[3]), out[4]
+
+    value, hits, path, plus, plus_path = run_copy("clone_a", 3.0)
+    assert (value, hits, plus) == (6.0, 0, 2.0)  # compiled
+    value, hits, path_b, _, _ = run_copy("clone_b", 3.0)  # the same sources elsewhere: loaded, not compiled
+    assert (value, hits, path_b) == (6.0, 1, path)
+    value, hits, path_c, _, _ = run_copy("clone_c", 5.0)  # other sources: a fresh folder, compiled
+    assert (value, hits) == (10.0, 0) and path_c != path
+    assert path.startswith(str(cache / jit_cache.source_hash(tmp_path / "clone_a" / "pkg")))
+    assert not plus_path.startswith(path.rsplit(os.sep, 1)[0]), "a foreign kernel must keep numba's locator"
