@@ -301,6 +301,14 @@ def plot_curves(curves: Dict[str, List[List[dict]]], path: Path, title: str) -> 
     return path
 
 
+def budget_label(agent_steps: int) -> str:
+    """A budget as a figure name shows it: 768, 50k, 3M, 1.5M."""
+    for scale, unit in ((1_000_000, "M"), (1_000, "k")):
+        if agent_steps >= scale and agent_steps % (scale // 10) == 0:
+            return f"{agent_steps / scale:g}{unit}"
+    return str(agent_steps)
+
+
 def _link(path: Path) -> str:
     """``path`` as RESULTS.md (in benchmarks/) links to it."""
     base = ROOT / "benchmarks"
@@ -402,7 +410,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             sections.append(f"**trained on `{sc}`, evaluated on {where}** ({episodes_label(by_row)} episodes per "
                             f"scenario and seed, mean actions, no training aids)\n\n"
                             + table_markdown(labels, by_row, speeds, n))
-        fig = plot_curves(curves, Path(args.figures) / f"{out.name}_{sc}.png",
+        # the budget is in the name: the same --out trained on to a larger budget keeps the earlier figure
+        fig = plot_curves(curves, Path(args.figures) / f"{out.name}_{sc}_{budget_label(args.agent_steps)}.png",
                           f"training curves, {sc} (training episodes, with the training aids; running mean over "
                           f"{SMOOTH_RECORDS} iterations); mean over seeds, band min..max")
         if fig is not None:

@@ -43,7 +43,7 @@ def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_th
     table = (exp / "table1.md").read_text()
     assert "| deepsets/none | 1 |" in table and "| deepsets/se3 | 1 |" in table
     assert "| row | seeds | Rew |" in table and "Suc %" in table and "ColD" in table
-    assert (tmp_path / "fig" / "exp_static_same_goal.png").stat().st_size > 1000  # <out name>_<scenario>.png
+    assert (tmp_path / "fig" / "exp_static_same_goal_768.png").stat().st_size > 1000  # <out>_<scenario>_<budget>
 
     # a run killed before its first checkpoint (a run dir with a config only) starts again
     killed = exp / "runs" / "static_same_goal" / "deepsets-none" / "seed1"
@@ -121,6 +121,16 @@ def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_thread):
     assert done["agent_steps"] >= 1536 and done["resumed"]
     steps = [json.loads(line)["global_step"] for line in (rd / "metrics.jsonl").read_text().splitlines()]
     assert steps == sorted(steps) and len(set(steps)) == len(steps)  # one history, no step twice
+    # each budget has its own curves figure: the one an earlier report links is not overwritten
+    assert sorted(f.name for f in (tmp_path / "fig").glob("*.png")) == [
+        "exp_static_same_goal_1536.png", "exp_static_same_goal_768.png"]
+
+
+@pytest.mark.parametrize("steps, label", [(768, "768"), (1536, "1536"), (50_000, "50k"), (1_500, "1.5k"),
+                                          (3_000_000, "3M"), (30_000_000, "30M"), (1_500_000, "1.5M"),
+                                          (1_234_567, "1234567")])
+def test_budget_label(steps, label):
+    assert table1.budget_label(steps) == label
 
 
 def test_a_larger_budget_is_refused_for_runs_whose_lr_decays_to_their_budget(tmp_path, one_thread, capsys):
