@@ -16,22 +16,21 @@ import argparse
 import subprocess
 import sys
 import time
-from typing import TYPE_CHECKING, List, Sequence
+from typing import List, Sequence
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from quad_env.config import EnvConfig
+from quad_env import config
+from quad_env.config import EnvConfig
 
-SIM_DTYPES = ("float64", "float32")
+# the simulator's dtypes (quad_env.config), the default first: it is the larger job
+SIM_DTYPES = tuple(sorted(config.SIM_DTYPES, key=lambda d: d != EnvConfig.sim_dtype))
 
 
 def variants(sim_dtype: str) -> List[EnvConfig]:
     """The environment configs warmed for ``sim_dtype``: float64 (the default) with every scenario of ``mix``,
     with and without obstacles; float32 with one scenario (the scenario kernels' float32 versions are rarely
     used and compile on first use)."""
-    from quad_env.config import EnvConfig
-
     short = dict(num_agents=2, num_neighbors=1, sim_dtype=sim_dtype, replay_prob=0.5, episode_duration=0.05)
     if sim_dtype == "float32":
         return [EnvConfig(scenario="static_same_goal", respawn_on_floor=True, **short)]
