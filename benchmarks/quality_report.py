@@ -2,7 +2,7 @@
 of an evaluation fail (collided, or clean but outside the success radius at the end).
 
     python -m benchmarks.quality_report --run "30 M=runs/quality3_deepsets_se3" --run "60 M=runs/quality_60m"
-        [--episodes runs/quality_60m/eval_q60/episodes.jsonl] [--figure benchmarks/figures/x.png] [--append]
+        [--episodes runs/quality_60m/eval_q60/episodes.jsonl ...] [--figure benchmarks/figures/x.png] [--append]
 
 Curves come from each run's metrics.jsonl (training episodes, so with the training aids) through
 ``benchmarks.table1.plot_curves``; the failure split from the per-drone flags of ``swarm_appo.evaluate``'s
@@ -29,6 +29,23 @@ def parse_run(text: str) -> Tuple[str, Path]:
     if not (Path(path) / "metrics.jsonl").exists():
         raise argparse.ArgumentTypeError(f"--run {text!r}: {path}/metrics.jsonl does not exist")
     return label, Path(path)
+
+
+def read_episodes(paths: List[Path]) -> List[dict]:
+    """The episodes of several evaluation files. A policy label met in an earlier file gets the file's folder
+    appended, so two evaluations that print the same label (e.g. "seed0 (deepsets/se3)" of two experiments)
+    stay two rows instead of being pooled."""
+    episodes, seen = [], set()
+    for path in paths:
+        eps = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        labels = {e["policy"] for e in eps}
+        clash = labels & seen
+        for e in eps:
+            if e["policy"] in clash:
+                e["policy"] = f"{e['policy']} [{path.parent}]"
+        seen |= {e["policy"] for e in eps}
+        episodes += eps
+    return episodes
 
 
 def failure_split(episodes: List[dict]) -> Dict[str, Dict[str, float]]:
@@ -69,24 +86,24 @@ def report(split: Dict[str, Dict[str, float]], figure: Path = None) -> str:
 def main(argv=None) -> Dict[str, Dict[str, float]]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", type=parse_run, action="append", default=[], help="LABEL=RUN_DIR, repeatable")
-    p.add_argument("--episodes", type=Path, help="episodes.jsonl of a swarm_appo.evaluate output folder")
+    p.add_argument("--episodes", type=Path, action="append", default=[],
+                   help="episodes.jsonl of a swarm_appo.evaluate output folder, repeatable (one table row per policy)")
     p.add_argument("--figure", type=Path, help="PNG of the runs' learning curves (needs --run)")
     p.add_argument("--append", action="store_true", help="append the figures to benchmarks/RESULTS.md")
     args = p.parse_args(argv)
-    if not args.run and args.episodes is None:
+    if not args.run and not args.episodes:
         p.error("give --run LABEL=RUN_DIR (curves) and/or --episodes FILE (failure split)")
     if args.figure is not None and not args.run:
         p.error("--figure needs at least one --run")
-    if args.episodes is not None and not args.episodes.exists():
-        p.error(f"--episodes: {args.episodes} does not exist")
+    for path in args.episodes:
+        if not path.exists():
+            p.error(f"--episodes: {path} does not exist")
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     figure = None
     if args.figure is not None:
         figure = plot_curves({label: [read_metrics(rd)] for label, rd in args.run}, args.figure,
                              "training episodes (training aids on)")
-    split = {}
-    if args.episodes is not None:
-        split = failure_split([json.loads(line) for line in args.episodes.read_text().splitlines() if line.strip()])
+    split = failure_split(read_episodes(args.episodes))
     header = section_header("quality_report", started, argv, ["benchmarks"], load_before)
     publish("\n".join(header + ["", report(split, figure)]), args.append)
     return split

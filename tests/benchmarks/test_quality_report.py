@@ -38,6 +38,19 @@ def test_curves_of_two_runs_and_the_split_in_one_section(tmp_path):
     assert figure.stat().st_size > 0 and split["p"]["success"] == 1.0
 
 
+def test_several_evaluation_files_give_one_row_per_policy_and_keep_equal_labels_apart(tmp_path):
+    files = []
+    for name, success in (("exp1", [True, True]), ("exp2", [False, False]), ("exp3", [True, False])):
+        (tmp_path / name).mkdir()
+        policy = "other" if name == "exp3" else "seed0 (deepsets/se3)"  # exp1 and exp2 print the same label
+        files.append(tmp_path / name / "episodes.jsonl")
+        files[-1].write_text(json.dumps(_episode(policy, success, [False, False], success, 0)) + "\n")
+    split = qr.main([a for f in files for a in ("--episodes", str(f))])
+    assert split["seed0 (deepsets/se3)"]["success"] == 1.0  # the first file keeps the plain label
+    assert split[f"seed0 (deepsets/se3) [{tmp_path / 'exp2'}]"]["success"] == 0.0
+    assert split["other"]["success"] == 0.5 and len(split) == 3
+
+
 @pytest.mark.parametrize("argv, message", [
     ([], "give --run"),
     (["--run", "no_equals_sign"], "expected LABEL=RUN_DIR"),
