@@ -8,8 +8,8 @@
 #   1. benchmarks.gpu_learner: the learner alone on the GPU at paper sizes, fp32 vs bf16 (agent-steps/s it can
 #      take in, peak GPU memory), se3_graphormer and se3_kattention;
 #   2. the paper config (se3_graphormer, mix, 8 drones) for a few minutes: learner on the GPU (runner.precision=
-#      auto: bf16 there), one Ray rollout worker per remaining CPU core; agent-steps/s, learner share, policy lag,
-#      system/gpu_* metrics, a checkpoint reloaded onto the CPU (map_location);
+#      auto: fp32 there, see swarm_appo.precision), one Ray rollout worker per remaining CPU core; agent-steps/s,
+#      learner share, policy lag, system/gpu_* metrics, a checkpoint reloaded onto the CPU (map_location);
 #   3. only if 2 failed: the same serially (rollout worker in the learner's process, no Ray).
 #   nvidia-smi samples utilisation and memory every second throughout.
 # Results land in $OUT (the device tool brings back at most 8 files): env.txt, smi.csv, learner.log, train.log,
@@ -21,16 +21,9 @@ OUT=${OUT:-gpu_check_out}
 mkdir -p "$OUT"
 PY=${PYTHON:-python3}
 DEVICE=${DEVICE:-cuda} TRAIN_S=${TRAIN_S:-180} LEARNER_S=${LEARNER_S:-10} WORKERS=${WORKERS:-0}
-export PYTHONUNBUFFERED=1
 RUNS=$(mktemp -d)
 
-if ! $PY -c "import ray, gymnasium" 2>/dev/null && [ -d .whl ]; then  # the device image: install what was carried
-    SITE=/tmp/site; mkdir -p $SITE
-    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target $SITE .whl/*.whl
-    tar -xJf .whl/ray_slim.tar.xz -C $SITE
-    export PYTHONPATH=$SITE
-fi
-export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+source benchmarks/gpu_setup.sh
 
 { date -u; nvidia-smi; lscpu | grep -E "Model name|^CPU\(s\)|^Flags" | cut -c1-200; free -g; df -h /dev/shm /tmp
   git log -1 --format="commit %h %s" 2>/dev/null

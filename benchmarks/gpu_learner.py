@@ -81,6 +81,36 @@ def time_learner(cfg, batch: List[Dict], device: torch.device, precision: str, s
     return out
 
 
+def profile_call(cfg, batch: List[Dict], device: torch.device, precision: str, rows: int = 15) -> str:
+    """One ``Learner.train`` call under torch.profiler (after a warm-up call): its top operators by self CPU
+    time, the kernel count and the device's busy time against the wall time, i.e. where a learner that is
+    slower than its device's arithmetic spends the call."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from swarm_appo.learner import Learner
+    from swarm_appo.model import model_factory
+
+    learner = Learner(model_factory(cfg.env.obs_layout(), cfg.model)(), cfg.algo, device, seed=cfg.runner.seed,
+                      precision=precision)
+    for _ in range(2):  # warm-up, then the profiled call
+        for f in batch:
+            f["policy_version"][...] = learner.version
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+        with profile(activities=activities) as prof:
+            t0 = time.perf_counter()
+            learner.train(batch)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            wall = time.perf_counter() - t0
+    events = prof.key_averages()
+    dev_us = sum(getattr(e, "self_device_time_total", 0.0) for e in events)
+    kernels = sum(e.count for e in events if getattr(e, "self_device_time_total", 0.0) > 0)
+    head = (f"profile {cfg.model.encoder}/{precision}: wall {wall * 1e3:,.0f} ms (under the profiler); device busy "
+            f"{dev_us / 1e3:,.0f} ms ({dev_us / 1e4 / wall:.0f} %); {kernels:,} device kernels/copies; "
+            f"{torch.get_num_threads()} CPU thread(s)")
+    return head + "\n" + events.table(sort_by="self_cpu_time_total", row_limit=rows, max_name_column_width=48)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -88,6 +118,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--precisions", default="fp32,bf16", help="comma-separated: fp32, bf16")
     p.add_argument("--seconds", type=float, default=20.0, help="timed training per (encoder, precision)")
     p.add_argument("--config", default=str(ROOT / "configs" / "paper.yaml"))
+    p.add_argument("--threads", type=int, default=0,
+                   help="torch threads of the learner while timed (0: torch's default); in training it has the "
+                        "cores the rollout workers leave, often 1")
+    p.add_argument("--profile", action="store_true",
+                   help="after timing, profile one call per (encoder, precision) and print its top operators")
     p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
     p.add_argument("overrides", nargs="*", help="config overrides (key=value) for every encoder")
     return p
@@ -112,6 +147,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         except ConfigError as exc:
             raise SystemExit(f"config error: {exc}")
         batch = collect_batch(cfg)
+        if args.threads:
+            torch.set_num_threads(args.threads)
         fp32_rate = None
         for precision in precisions:
             r = time_learner(cfg, batch, device, precision, args.seconds)
@@ -121,6 +158,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             lines.append(f"| {name} | {precision} | {r['batch_steps']:,} | {r['updates_per_call']} | "
                          f"{r['call_s']:.3f} | {r['steps_per_s']:,.0f} | {ratio} | {mem} |")
             print(lines[-1], flush=True)
+            if args.profile:
+                print(profile_call(cfg, batch, device, precision), flush=True)
     text = "\n".join([
         f"## gpu_learner — {datetime.datetime.now().isoformat(timespec='seconds')}",
         "",

@@ -179,9 +179,10 @@ class RunnerConfig:
     """Learner device: "auto" (cuda when present, else cpu), "cpu", "cuda" or "cuda:<index>"."""
     precision: str = "auto"
     """The learner's matmul precision: "fp32", "bf16" (mixed precision: torch.autocast, fp32 weights, optimizer,
-    log-probs, V-trace and losses) or "auto": bf16 on a CUDA device with bf16, and on a CPU with native bf16
-    (AMX / AVX-512 BF16) for ``model.size: paper``; fp32 otherwise (``swarm_appo.precision``). The choice and
-    its reason are logged and written at the top of the run's config.yaml."""
+    log-probs, V-trace and losses) or "auto": bf16 on a CPU with native bf16 (AMX / AVX-512 BF16) for
+    ``model.size: paper``; fp32 otherwise, and on CUDA, where the learner is launch-bound at these batch sizes
+    (``swarm_appo.precision``). The choice and its reason are logged and written at the top of the run's
+    config.yaml."""
     inference_precision: str = "auto"
     """The rollout workers' inference precision: "fp32", "bf16" or "auto", the same rule as ``precision``,
     resolved by each worker on its own CPU."""

@@ -7,7 +7,10 @@ frame rotations of the symmetric encoders run in fp32 too (``encoders.frames.ful
 
 ``runner.precision: auto`` resolves on the learner's device:
 
-- CUDA: bf16 when the device supports it;
+- CUDA: fp32. At the shipped batch sizes a CUDA learner is bound by kernel launches, not arithmetic, and
+  autocast's casts are more launches: on an H200 at the paper's config (se3_graphormer, batch 4096) bf16 was
+  0.79x fp32 for the learner alone and 0.92x end to end with 15 Ray rollout workers; at batch 16384 it was
+  1.20x (benchmarks/RESULTS.md, "gpu_check"). Ask for ``bf16`` with large batches;
 - CPU: bf16 when the CPU multiplies bf16 natively (AMX or AVX-512 BF16: Intel Sapphire Rapids and later,
   AMD Zen 4 and later) *and* the model has the paper's widths (``model.size: paper``); fp32 otherwise.
   On the 2-core AMX Xeon of benchmarks/RESULTS.md ("bf16"), one learner step at batch 2048 was 1.6-2.5x
@@ -61,6 +64,9 @@ def resolve_precision(precision: str, device: torch.device, model_size: str = "p
     ok, evidence = native_bf16(device)
     if not ok:
         return "fp32", f"auto: {evidence}"
+    if device.type == "cuda":
+        return "fp32", (f"auto: {evidence}, but a CUDA learner at these batch sizes is launch-bound and bf16's "
+                        "casts made it slower (set runner.precision=bf16 for batches of 16k agent steps and more)")
     if device.type == "cpu" and model_size != "paper":
         return "fp32", f"auto: {evidence}, but model.size={model_size} (too narrow for bf16 to pay on a CPU)"
     return "bf16", f"auto: {evidence}"

@@ -44,6 +44,17 @@ def test_auto_follows_the_cpu_flags_and_the_model_size(monkeypatch, flags, size,
     assert why.startswith("auto:")
 
 
+@pytest.mark.parametrize("supports", [True, False])
+def test_auto_is_fp32_on_cuda_where_the_learner_is_launch_bound(monkeypatch, supports):
+    # measured on an H200 (RESULTS.md, gpu_check): bf16 0.79x fp32 at the paper's batch, 1.20x at 16384
+    monkeypatch.setattr(prec, "native_bf16", lambda device: (supports, f"GPU {'supports' if supports else 'lacks'}"))
+    chosen, why = prec.resolve_precision("auto", torch.device("cuda"), "paper")
+    assert chosen == "fp32"
+    assert why.startswith("auto: GPU")
+    assert ("launch-bound" in why) == supports
+    assert prec.resolve_precision("bf16", torch.device("cuda"), "paper")[0] == "bf16"
+
+
 def test_explicit_precision_is_kept_and_unknown_ones_are_refused():
     assert prec.resolve_precision("fp32", CPU, "paper")[0] == "fp32"
     assert prec.resolve_precision("bf16", CPU, "small")[0] == "bf16"
