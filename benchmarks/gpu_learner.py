@@ -47,32 +47,38 @@ def collect_batch(cfg) -> List[Dict]:
     return batch
 
 
-def time_learner(cfg, batch: List[Dict], device: torch.device, precision: str, seconds: float) -> Dict[str, float]:
+def make_learner(cfg, device: torch.device, precision: str):
     from swarm_appo.learner import Learner
     from swarm_appo.model import model_factory
 
     torch.manual_seed(cfg.runner.seed)
-    learner = Learner(model_factory(cfg.env.obs_layout(), cfg.model)(), cfg.algo, device, seed=cfg.runner.seed,
-                      precision=precision)
+    return Learner(model_factory(cfg.env.obs_layout(), cfg.model)(), cfg.algo, device, seed=cfg.runner.seed,
+                   precision=precision)
+
+
+def timed_call(learner, batch: List[Dict], device: torch.device) -> float:
+    """Seconds of one ``Learner.train`` call on ``batch`` (CUDA synchronised), the batch stamped fresh."""
+    for f in batch:
+        f["policy_version"][...] = learner.version  # fresh data every call: nothing masked as stale
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    t0 = time.perf_counter()
+    learner.train(batch)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - t0
+
+
+def time_learner(cfg, batch: List[Dict], device: torch.device, precision: str, seconds: float) -> Dict[str, float]:
+    learner = make_learner(cfg, device, precision)
     steps = sum(f["num_agent_steps"] for f in batch)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
 
-    def one_call() -> float:
-        for f in batch:
-            f["policy_version"][...] = learner.version  # fresh data every call: nothing masked as stale
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t0 = time.perf_counter()
-        learner.train(batch)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        return time.perf_counter() - t0
-
-    one_call()  # warm-up: allocations, kernel selection
+    timed_call(learner, batch, device)  # warm-up: allocations, kernel selection
     times, t_end = [], time.perf_counter() + seconds
     while time.perf_counter() < t_end or len(times) < 2:
-        times.append(one_call())
+        times.append(timed_call(learner, batch, device))
     best = min(times)
     out = {"steps_per_s": steps / best, "call_s": best, "calls": len(times), "batch_steps": steps,
            "updates_per_call": cfg.algo.num_epochs * -(-steps // cfg.algo.batch_size)}
@@ -87,21 +93,11 @@ def profile_call(cfg, batch: List[Dict], device: torch.device, precision: str, r
     slower than its device's arithmetic spends the call."""
     from torch.profiler import ProfilerActivity, profile
 
-    from swarm_appo.learner import Learner
-    from swarm_appo.model import model_factory
-
-    learner = Learner(model_factory(cfg.env.obs_layout(), cfg.model)(), cfg.algo, device, seed=cfg.runner.seed,
-                      precision=precision)
-    for _ in range(2):  # warm-up, then the profiled call
-        for f in batch:
-            f["policy_version"][...] = learner.version
-        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-        with profile(activities=activities) as prof:
-            t0 = time.perf_counter()
-            learner.train(batch)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            wall = time.perf_counter() - t0
+    learner = make_learner(cfg, device, precision)
+    timed_call(learner, batch, device)  # warm-up: allocations, kernel selection
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        wall = timed_call(learner, batch, device)
     events = prof.key_averages()
     dev_us = sum(getattr(e, "self_device_time_total", 0.0) for e in events)
     kernels = sum(e.count for e in events if getattr(e, "self_device_time_total", 0.0) > 0)
@@ -135,6 +131,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     device = torch.device(args.device)
     encoders = [e.strip() for e in args.encoders.split(",") if e.strip()]
     precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
+    if args.threads < 0:
+        raise SystemExit(f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     bad = [p for p in precisions if p not in ("fp32", "bf16")]
     if bad:
         raise SystemExit(f"--precisions: {bad} not in ['fp32', 'bf16']")

@@ -44,6 +44,8 @@ def test_times_each_precision_with_the_threads_asked_and_profiles_one_call(capsy
     assert "aten::" in out  # the operator table
 
 
-def test_unknown_precision_is_refused():
+def test_unknown_precision_and_negative_threads_are_refused():
     with pytest.raises(SystemExit, match="fp16"):
         gpu_learner.main(["--device", "cpu", "--precisions", "fp16", "--no-append"])
+    with pytest.raises(SystemExit, match="--threads"):
+        gpu_learner.main(["--device", "cpu", "--threads", "-2", "--no-append"])
