@@ -19,8 +19,10 @@ schedule (``algo.lr_schedule=linear``) that is refused, since the decay would re
 
 Output: ``<out>/table1.md`` (also appended to benchmarks/RESULTS.md unless ``--no-results``) with one table
 per (training scenario, evaluation scenario): rows x the paper's columns, mean +- std over seeds of each seed's
-mean over its evaluation episodes; each row's agent-steps/s; and learning curves (training episodes: success,
-collisions, distance against agent steps, a line per row = mean over seeds, band = min..max) as PNG.
+mean over its evaluation episodes; each row's agent-steps/s; under it each symmetry row paired with its ``none``
+row seed by seed (``benchmarks.paired``: the differences and an exact sign-flip test); and learning curves
+(training episodes: success, collisions, distance against agent steps, a line per row = mean over seeds, band =
+min..max) as PNG.
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from benchmarks.common import ROOT, append_results, commit, load_average, machine
+from benchmarks.paired import paired_markdown
 
 DEFAULT_ROWS = ("deepsets/none", "deepsets/se3", "kattention/none", "kattention/se3", "graphormer/none",
                 "graphormer/se3")
@@ -385,6 +388,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     figures = []
     for sc in scenarios:
         cells: Dict[str, Dict[str, List[Dict[str, float]]]] = {}  # eval scenario -> row -> per-seed means
+        by_seed: Dict[str, Dict[str, Dict[int, Dict[str, float]]]] = {}  # eval scenario -> row -> seed -> means
         speeds: Dict[str, List[float]] = {}
         curves: Dict[str, List[List[dict]]] = {}
         for row in rows:
@@ -398,10 +402,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 ep = rd / EVAL_DIR / "episodes.jsonl"
                 if ep.exists():
                     per_scenario = seed_means(ep)
+                    if len(per_scenario) > 1:
+                        per_scenario = {**per_scenario, POOLED: pooled_means(per_scenario)}
                     for es, means in per_scenario.items():
                         cells.setdefault(es, {}).setdefault(label, []).append(means)
-                    if len(per_scenario) > 1:
-                        cells.setdefault(POOLED, {}).setdefault(label, []).append(pooled_means(per_scenario))
+                        by_seed.setdefault(es, {}).setdefault(label, {})[seed] = means
         labels = [row_label(r) for r in rows]
         for es in sorted(cells, key=lambda name: name != POOLED):  # the pooled table first
             by_row = cells[es]
@@ -410,6 +415,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             sections.append(f"**trained on `{sc}`, evaluated on {where}** ({episodes_label(by_row)} episodes per "
                             f"scenario and seed, mean actions, no training aids)\n\n"
                             + table_markdown(labels, by_row, speeds, n))
+            paired = paired_markdown(labels, by_seed[es])
+            if paired:
+                sections.append(paired)
         # the budget is in the name: the same --out trained on to a larger budget keeps the earlier figure
         fig = plot_curves(curves, Path(args.figures) / f"{out.name}_{sc}_{budget_label(args.agent_steps)}.png",
                           f"training curves, {sc} (training episodes, with the training aids; running mean over "

@@ -57,6 +57,8 @@ def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_th
         assert (exp / "runs" / "static_same_goal" / row / "seed1" / "done.json").exists()
     table = (exp / "table1.md").read_text()
     assert "| deepsets/none | 2 |" in table and "| deepsets/se3 | 2 |" in table
+    assert "| deepsets/se3 − deepsets/none | 2 |" in table  # paired by seed under the table
+    assert "- deepsets/none → deepsets/se3, seeds 0, 1: " in table
     out = capsys.readouterr().out
     assert out.count("training deepsets/") == 4  # 2 runs the first time, 2 new ones the second
 

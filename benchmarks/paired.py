@@ -1,0 +1,106 @@
+"""Paired comparison by seed: each symmetry row against the ``none`` row of the same architecture, on the seeds both
+have. Every row of a Table 1 experiment trains the same seeds, so seed k of ``kattention/se3`` and seed k of
+``kattention/none`` share their environment stream and initial conditions: the per-seed difference removes what the
+seed alone does, and an exact sign-flip test says how often a difference that large comes from seed noise alone.
+
+With n paired seeds the smallest attainable two-sided p is 2 / 2^n (0.25 at 3 seeds, 0.125 at 4, 0.031 at 6):
+a claim at the 5 % level needs at least 6 seeds whatever the effect size. The report prints that floor with p.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+PAIRED_METRICS = ("rew", "dist", "col", "cold", "suc")  # the paper's columns and drone-drone contacts
+MAX_EXACT_SEEDS = 16  # 2^16 sign assignments; beyond that the exact test is not worth its memory here
+
+
+def sign_flip_p(diffs: Sequence[float]) -> float:
+    """Exact two-sided p-value of the paired sign-flip (permutation) test of "mean difference = 0": the share of the
+    2^n ways to flip the signs of the n differences whose |mean| is at least the observed one. Under the null
+    hypothesis (the symmetry changes nothing) each seed's difference is as likely positive as negative."""
+    d = np.asarray(diffs, dtype=np.float64)
+    n = d.size
+    if n == 0:
+        raise ValueError("sign_flip_p needs at least one paired difference")
+    if n > MAX_EXACT_SEEDS:
+        raise ValueError(f"sign_flip_p is exact: at most {MAX_EXACT_SEEDS} paired seeds, got {n}")
+    bits = (np.arange(2 ** n)[:, None] >> np.arange(n)) & 1  # [2^n, n] every sign assignment
+    sums = np.abs((1 - 2 * bits) @ d)  # [2^n]
+    observed = abs(d.sum())
+    return float(np.mean(sums >= observed - 1e-9 * max(1.0, observed)))  # ties (rounding) count as extreme
+
+
+def min_p(n: int) -> float:
+    """The smallest p the exact two-sided sign-flip test can give with n seeds."""
+    return min(1.0, 2.0 / 2 ** n)
+
+
+def pairs(labels: Sequence[str]) -> List[Tuple[str, str]]:
+    """(``arch/none`` label, ``arch/<symmetry>`` label) for every symmetry row whose ``none`` row is in the
+    experiment; a ``--compare`` suffix (`` key=value``) must match too."""
+    out = []
+    for label in labels:
+        head, sep, setting = label.partition(" ")
+        arch, _, symmetry = head.partition("/")
+        base = f"{arch}/none" + (sep + setting if sep else "")
+        if symmetry != "none" and base in labels:
+            out.append((base, label))
+    return out
+
+
+def paired_stats(base: Dict[int, Dict[str, float]], other: Dict[int, Dict[str, float]], metric: str
+                 ) -> Optional[dict]:
+    """The per-seed differences ``other - base`` of one metric on the seeds both rows have, with their mean,
+    population std, the number of seeds where ``other`` is better, and the sign-flip p."""
+    from swarm_appo.eval_tables import METRICS
+
+    seeds = sorted(s for s in set(base) & set(other) if metric in base[s] and metric in other[s])
+    if not seeds:
+        return None
+    b = np.array([base[s][metric] for s in seeds])
+    o = np.array([other[s][metric] for s in seeds])
+    d = o - b
+    better = d > 0 if METRICS[metric].higher_is_better else d < 0
+    return {"seeds": seeds, "base": b, "other": o, "mean": float(d.mean()), "std": float(d.std()),
+            "better": int(better.sum()), "p": sign_flip_p(d)}
+
+
+def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str, float]]]) -> str:
+    """A table of the paired differences (symmetry row minus its ``none`` row), one row per pair, and the
+    per-seed values under it; "" when the experiment has no such pair with a common seed."""
+    from swarm_appo.eval_tables import METRICS
+
+    rows, details, counts = [], [], set()
+    for base, other in pairs(labels):
+        if base not in by_seed or other not in by_seed:
+            continue
+        stats = {m: paired_stats(by_seed[base], by_seed[other], m) for m in PAIRED_METRICS}
+        stats = {m: s for m, s in stats.items() if s is not None}
+        if not stats:
+            continue
+        n = max(len(s["seeds"]) for s in stats.values())
+        counts.add(n)
+        cells = []
+        for m in PAIRED_METRICS:
+            s, dec = stats.get(m), METRICS[m].decimals
+            cells.append("-" if s is None else f"{s['mean']:+.{dec}f} ± {s['std']:.{dec}f}, better on "
+                         f"{s['better']}/{len(s['seeds'])}, p = {s['p']:.2f}")
+        rows.append(f"| {other} − {base} | {n} | " + " | ".join(cells) + " |")
+        per_seed = "; ".join(
+            f"{METRICS[m].column} " + ", ".join(f"{x:.{METRICS[m].decimals}f}→{y:.{METRICS[m].decimals}f}"
+                                                for x, y in zip(s["base"], s["other"]))
+            for m, s in stats.items())
+        seeds = next(iter(stats.values()))["seeds"]
+        details.append(f"- {base} → {other}, seeds {', '.join(map(str, seeds))}: {per_seed}")
+    if not rows:
+        return ""
+    floor = ", ".join(f"{min_p(n):.3f} at {n} seeds" for n in sorted(counts))
+    head = ("| paired by seed | seeds | " + " | ".join(f"Δ {METRICS[m].column}" for m in PAIRED_METRICS) + " |")
+    return "\n".join([
+        "Paired by seed (the symmetry row minus its `none` row on each common seed; mean ± population std of the "
+        "differences; better on k/n = seeds where the symmetry row is better; p = exact two-sided sign-flip "
+        f"test; the smallest p these seeds allow: {floor}):",
+        "",
+        head, "|---|---:|" + "---|" * len(PAIRED_METRICS), *rows, "", *details])

@@ -1,0 +1,71 @@
+"""benchmarks.paired: the exact sign-flip test against a brute-force enumeration and hand-counted cases, and the
+paired table of a symmetry row against its `none` row on common seeds."""
+import itertools
+
+import numpy as np
+import pytest
+
+from benchmarks import paired
+
+
+def brute_force_p(d):
+    """Enumerate the 2^n sign patterns with itertools (an independent route to the same exact p)."""
+    obs = abs(sum(d))
+    hits = [abs(sum(s * x for s, x in zip(signs, d))) >= obs - 1e-12
+            for signs in itertools.product((1, -1), repeat=len(d))]
+    return sum(hits) / len(hits)
+
+
+def test_sign_flip_p_hand_counted_cases():
+    assert paired.sign_flip_p([1.0, 2.0, 3.0]) == pytest.approx(2 / 8)  # only all-plus and all-minus reach |6|
+    # +-1 +-2 +-3 gives |sums| 6, 0, 2, 4, 4, 2, 0, 6: six of eight are >= |1 - 2 + 3| = 2
+    assert paired.sign_flip_p([1.0, -2.0, 3.0]) == pytest.approx(6 / 8)
+    assert paired.sign_flip_p([0.0, 0.0]) == 1.0  # no difference is never evidence
+    assert paired.sign_flip_p([-5.0]) == 1.0  # one seed cannot say anything
+    assert paired.sign_flip_p([0.5] * 6) == pytest.approx(paired.min_p(6)) == pytest.approx(2 / 64)
+
+
+def test_sign_flip_p_matches_brute_force_enumeration():
+    rng = np.random.default_rng(0)
+    for n in range(1, 9):
+        for _ in range(5):
+            d = rng.normal(0.3, 1.0, n).round(2)
+            assert paired.sign_flip_p(d) == pytest.approx(brute_force_p(list(d)))
+
+
+def test_sign_flip_p_refuses_what_it_cannot_do_exactly():
+    with pytest.raises(ValueError, match="at least one"):
+        paired.sign_flip_p([])
+    with pytest.raises(ValueError, match="at most 16"):
+        paired.sign_flip_p(np.ones(17))
+
+
+def test_pairs_join_each_symmetry_row_to_its_none_row():
+    labels = ["a/none", "a/se3", "a/yaw", "b/se3", "c/none", "a/none lr=1", "a/se3 lr=1", "a/se3 lr=2"]
+    assert paired.pairs(labels) == [("a/none", "a/se3"), ("a/none", "a/yaw"), ("a/none lr=1", "a/se3 lr=1")]
+
+
+def test_paired_markdown_differences_wins_and_per_seed_values():
+    base = {0: {"dist": 1.0, "suc": 10.0, "col": 3.0}, 1: {"dist": 0.8, "suc": 20.0, "col": 1.0},
+            2: {"dist": 0.9, "suc": 0.0, "col": 2.0}}
+    # se3: closer on every seed, more success on 2 of 3, fewer contacts on 1 of 3; seed 3 has no none partner
+    other = {0: {"dist": 0.7, "suc": 30.0, "col": 1.0}, 1: {"dist": 0.6, "suc": 10.0, "col": 2.0},
+             2: {"dist": 0.6, "suc": 10.0, "col": 2.0}, 3: {"dist": 0.1, "suc": 99.0, "col": 0.0}}
+    md = paired.paired_markdown(["x/none", "x/se3"], {"x/none": base, "x/se3": other})
+    row = next(line for line in md.splitlines() if line.startswith("| x/se3 − x/none |"))
+    cells = row.rstrip(" |").split(" | ")
+    assert cells[1] == "3"
+    d_dist = np.array([-0.3, -0.2, -0.3])
+    assert cells[3] == f"{d_dist.mean():+.2f} ± {d_dist.std():.2f}, better on 3/3, p = 0.25"
+    assert cells[4] == "-0.33 ± 1.25, better on 1/3, p = 1.00"  # Col: -2, +1, 0: every flip reaches |sum| 1
+    # Suc: +20, -10, +10; |sum| 20 is reached by (+20 -10 +10), (+20 +10 -10), (+20 +10 +10) and their negatives
+    assert cells[6] == "+6.7 ± 12.5, better on 2/3, p = 0.75"
+    assert cells[2] == "-" and cells[5] == "-"  # Rew and ColD not in these cells
+    assert "- x/none → x/se3, seeds 0, 1, 2: Dist 1.00→0.70, 0.80→0.60, 0.90→0.60" in md
+    assert "0.250 at 3 seeds" in md
+
+
+def test_no_pair_no_section():
+    one, two = {0: {"dist": 1.0}}, {1: {"dist": 2.0}}
+    assert paired.paired_markdown(["x/se3", "y/none"], {"x/se3": one, "y/none": one}) == ""  # not the same arch
+    assert paired.paired_markdown(["x/none", "x/se3"], {"x/none": one, "x/se3": two}) == ""  # no common seed
