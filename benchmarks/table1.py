@@ -387,7 +387,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     sections = []
     figures = []
     for sc in scenarios:
-        cells: Dict[str, Dict[str, List[Dict[str, float]]]] = {}  # eval scenario -> row -> per-seed means
         by_seed: Dict[str, Dict[str, Dict[int, Dict[str, float]]]] = {}  # eval scenario -> row -> seed -> means
         speeds: Dict[str, List[float]] = {}
         curves: Dict[str, List[List[dict]]] = {}
@@ -405,13 +404,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     if len(per_scenario) > 1:
                         per_scenario = {**per_scenario, POOLED: pooled_means(per_scenario)}
                     for es, means in per_scenario.items():
-                        cells.setdefault(es, {}).setdefault(label, []).append(means)
                         by_seed.setdefault(es, {}).setdefault(label, {})[seed] = means
         labels = [row_label(r) for r in rows]
-        for es in sorted(cells, key=lambda name: name != POOLED):  # the pooled table first
-            by_row = cells[es]
+        for es in sorted(by_seed, key=lambda name: name != POOLED):  # the pooled table first
+            by_row = {r: list(per_seed.values()) for r, per_seed in by_seed[es].items()}  # row -> per-seed means
             n = {r: len(v) for r, v in by_row.items()}
-            where = f"`{es}`" if es != POOLED else f"{POOLED} of the {len(cells) - 1} below"
+            where = f"`{es}`" if es != POOLED else f"{POOLED} of the {len(by_seed) - 1} below"
             sections.append(f"**trained on `{sc}`, evaluated on {where}** ({episodes_label(by_row)} episodes per "
                             f"scenario and seed, mean actions, no training aids)\n\n"
                             + table_markdown(labels, by_row, speeds, n))
