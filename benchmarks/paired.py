@@ -96,7 +96,7 @@ def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str
         details.append(f"- {base} → {other}, seeds {', '.join(map(str, seeds))}: {per_seed}")
     if not rows:
         return ""
-    floor = ", ".join(f"{min_p(n):.3f} at {n} seeds" for n in sorted(counts))
+    floor = ", ".join(f"{min_p(n):.3f} at {n} seed{'s' if n != 1 else ''}" for n in sorted(counts))
     head = ("| paired by seed | seeds | " + " | ".join(f"Δ {METRICS[m].column}" for m in PAIRED_METRICS) + " |")
     return "\n".join([
         "Paired by seed (the symmetry row minus its `none` row on each common seed; mean ± population std of the "

@@ -69,3 +69,11 @@ def test_no_pair_no_section():
     one, two = {0: {"dist": 1.0}}, {1: {"dist": 2.0}}
     assert paired.paired_markdown(["x/se3", "y/none"], {"x/se3": one, "y/none": one}) == ""  # not the same arch
     assert paired.paired_markdown(["x/none", "x/se3"], {"x/none": one, "x/se3": two}) == ""  # no common seed
+
+
+def test_one_common_seed_states_its_floor_of_one():
+    # With one seed the sign-flip p cannot go below 1: the header must say so, in the singular.
+    md = paired.paired_markdown(["x/none", "x/se3"], {"x/none": {0: {"dist": 1.0}}, "x/se3": {0: {"dist": 0.5}}})
+    assert "allow: 1.000 at 1 seed)" in md
+    assert "1 seeds" not in md
+    assert "better on 1/1, p = 1.00" in md
