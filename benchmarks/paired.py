@@ -8,7 +8,7 @@ a claim at the 5 % level needs at least 6 seeds whatever the effect size. The re
 """
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -50,46 +50,53 @@ def pairs(labels: Sequence[str]) -> List[Tuple[str, str]]:
     return out
 
 
-def paired_stats(base: Dict[int, Dict[str, float]], other: Dict[int, Dict[str, float]], metric: str
-                 ) -> Optional[dict]:
-    """The per-seed differences ``other - base`` of one metric on the seeds both rows have, with their mean,
-    population std, the number of seeds where ``other`` is better, and the sign-flip p."""
+def _eval_specs() -> Mapping[str, Any]:
     from swarm_appo.eval_tables import METRICS
 
+    return METRICS
+
+
+def paired_stats(base: Dict[int, Dict[str, float]], other: Dict[int, Dict[str, float]], metric: str,
+                 specs: Optional[Mapping[str, Any]] = None) -> Optional[dict]:
+    """The per-seed differences ``other - base`` of one metric on the seeds both rows have, with their mean,
+    population std, the number of seeds where ``other`` is better, and the sign-flip p. ``specs`` maps a metric to
+    its ``column``, ``decimals`` and ``higher_is_better`` (default: the evaluation's ``eval_tables.METRICS``)."""
+    cols = specs if specs is not None else _eval_specs()
     seeds = sorted(s for s in set(base) & set(other) if metric in base[s] and metric in other[s])
     if not seeds:
         return None
     b = np.array([base[s][metric] for s in seeds])
     o = np.array([other[s][metric] for s in seeds])
     d = o - b
-    better = d > 0 if METRICS[metric].higher_is_better else d < 0
+    better = d > 0 if cols[metric].higher_is_better else d < 0
     return {"seeds": seeds, "base": b, "other": o, "mean": float(d.mean()), "std": float(d.std()),
             "better": int(better.sum()), "p": sign_flip_p(d)}
 
 
-def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str, float]]]) -> str:
+def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str, float]]],
+                    metrics: Sequence[str] = PAIRED_METRICS, specs: Optional[Mapping[str, Any]] = None) -> str:
     """A table of the paired differences (symmetry row minus its ``none`` row), one row per pair, and the
-    per-seed values under it; "" when the experiment has no such pair with a common seed."""
-    from swarm_appo.eval_tables import METRICS
-
+    per-seed values under it; "" when the experiment has no such pair with a common seed. ``metrics`` and
+    ``specs`` as in ``paired_stats`` (default: the evaluation's columns)."""
+    cols = specs if specs is not None else _eval_specs()
     rows, details, counts = [], [], set()
     for base, other in pairs(labels):
         if base not in by_seed or other not in by_seed:
             continue
-        stats = {m: paired_stats(by_seed[base], by_seed[other], m) for m in PAIRED_METRICS}
+        stats = {m: paired_stats(by_seed[base], by_seed[other], m, cols) for m in metrics}
         stats = {m: s for m, s in stats.items() if s is not None}
         if not stats:
             continue
         n = max(len(s["seeds"]) for s in stats.values())
         counts.add(n)
         cells = []
-        for m in PAIRED_METRICS:
-            s, dec = stats.get(m), METRICS[m].decimals
+        for m in metrics:
+            s, dec = stats.get(m), cols[m].decimals
             cells.append("-" if s is None else f"{s['mean']:+.{dec}f} ± {s['std']:.{dec}f}, better on "
                          f"{s['better']}/{len(s['seeds'])}, p = {s['p']:.2f}")
         rows.append(f"| {other} − {base} | {n} | " + " | ".join(cells) + " |")
         per_seed = "; ".join(
-            f"{METRICS[m].column} " + ", ".join(f"{x:.{METRICS[m].decimals}f}→{y:.{METRICS[m].decimals}f}"
+            f"{cols[m].column} " + ", ".join(f"{x:.{cols[m].decimals}f}→{y:.{cols[m].decimals}f}"
                                                 for x, y in zip(s["base"], s["other"]))
             for m, s in stats.items())
         seeds = next(iter(stats.values()))["seeds"]
@@ -97,10 +104,10 @@ def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str
     if not rows:
         return ""
     floor = ", ".join(f"{min_p(n):.3f} at {n} seed{'s' if n != 1 else ''}" for n in sorted(counts))
-    head = ("| paired by seed | seeds | " + " | ".join(f"Δ {METRICS[m].column}" for m in PAIRED_METRICS) + " |")
+    head = ("| paired by seed | seeds | " + " | ".join(f"Δ {cols[m].column}" for m in metrics) + " |")
     return "\n".join([
         "Paired by seed (the symmetry row minus its `none` row on each common seed; mean ± population std of the "
         "differences; better on k/n = seeds where the symmetry row is better; p = exact two-sided sign-flip "
         f"test; the smallest p these seeds allow: {floor}):",
         "",
-        head, "|---|---:|" + "---|" * len(PAIRED_METRICS), *rows, "", *details])
+        head, "|---|---:|" + "---|" * len(metrics), *rows, "", *details])

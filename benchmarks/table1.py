@@ -20,9 +20,10 @@ schedule (``algo.lr_schedule=linear``) that is refused, since the decay would re
 Output: ``<out>/table1.md`` (also appended to benchmarks/RESULTS.md unless ``--no-results``) with one table
 per (training scenario, evaluation scenario): rows x the paper's columns, mean +- std over seeds of each seed's
 mean over its evaluation episodes; each row's agent-steps/s; under it each symmetry row paired with its ``none``
-row seed by seed (``benchmarks.paired``: the differences and an exact sign-flip test); and learning curves
-(training episodes: success, collisions, distance against agent steps, a line per row = mean over seeds, band =
-min..max) as PNG.
+row seed by seed (``benchmarks.paired``: the differences and an exact sign-flip test); how fast each row learned
+(``benchmarks.learning_speed``: the mean training distance over the run and the agent steps to 1 m, also paired by
+seed); and learning curves (training episodes: success, collisions, distance against agent steps, a line per row =
+mean over seeds, band = min..max) as PNG.
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from benchmarks.common import ROOT, append_results, commit, load_average, machine
+from benchmarks.learning_speed import REACH_M, speed_markdown, summaries
 from benchmarks.paired import paired_markdown
 
 DEFAULT_ROWS = ("deepsets/none", "deepsets/se3", "kattention/none", "kattention/se3", "graphormer/none",
@@ -390,6 +392,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         by_seed: Dict[str, Dict[str, Dict[int, Dict[str, float]]]] = {}  # eval scenario -> row -> seed -> means
         speeds: Dict[str, List[float]] = {}
         curves: Dict[str, List[List[dict]]] = {}
+        curves_by_seed: Dict[str, Dict[int, List[dict]]] = {}  # the same records, keyed by seed for the pairing
         for row in rows:
             label = row_label(row)
             for seed in seeds:
@@ -397,7 +400,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 if not (rd / "done.json").exists():
                     continue
                 speeds.setdefault(label, []).append(json.loads((rd / "done.json").read_text())["agent_steps_per_s"])
-                curves.setdefault(label, []).append(read_metrics(rd))
+                records = read_metrics(rd)
+                curves.setdefault(label, []).append(records)
+                curves_by_seed.setdefault(label, {})[seed] = records
                 ep = rd / EVAL_DIR / "episodes.jsonl"
                 if ep.exists():
                     per_scenario = seed_means(ep)
@@ -416,6 +421,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             paired = paired_markdown(labels, by_seed[es])
             if paired:
                 sections.append(paired)
+        speed = speed_markdown(labels, summaries(curves_by_seed, lambda y: smooth(y, SMOOTH_RECORDS)))
+        if speed:
+            sections.append(f"**learning speed, trained on `{sc}`** (training curves: the training swarm's distance "
+                            f"to its goals, stochastic actions, with the training aids; Dist AUC = its mean over "
+                            f"the run's agent steps; M steps to {REACH_M:g} m = where the curve, smoothed as in the "
+                            f"figure, first falls below {REACH_M:g} m, a run that never does counted at its last "
+                            f"step)\n\n" + speed)
         # the budget is in the name: the same --out trained on to a larger budget keeps the earlier figure
         fig = plot_curves(curves, Path(args.figures) / f"{out.name}_{sc}_{budget_label(args.agent_steps)}.png",
                           f"training curves, {sc} (training episodes, with the training aids; running mean over "

@@ -58,6 +58,10 @@ def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_th
     table = (exp / "table1.md").read_text()
     assert "| deepsets/none | 2 |" in table and "| deepsets/se3 | 2 |" in table
     assert "| deepsets/se3 − deepsets/none | 2 |" in table  # paired by seed under the table
+    # ... and the learning speed of each row from its training curve, paired the same way
+    speed = table.split("**learning speed, trained on `static_same_goal`**")[1]
+    assert "| deepsets/none | 2 |" in speed and "| deepsets/se3 | 2 |" in speed and "Dist AUC (m)" in speed
+    assert "| deepsets/se3 − deepsets/none | 2 |" in speed
     assert "- deepsets/none → deepsets/se3, seeds 0, 1: " in table
     out = capsys.readouterr().out
     assert out.count("training deepsets/") == 4  # 2 runs the first time, 2 new ones the second
