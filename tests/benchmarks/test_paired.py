@@ -77,3 +77,41 @@ def test_one_common_seed_states_its_floor_of_one():
     assert "allow: 1.000 at 1 seed)" in md
     assert "1 seeds" not in md
     assert "better on 1/1, p = 1.00" in md
+
+
+def test_sampled_p_agrees_with_the_exact_test():
+    rng = np.random.default_rng(1)
+    for n in (5, 10, 14):
+        d = rng.normal(0.4, 1.0, n)
+        assert paired.sign_flip_p_sampled(d) == pytest.approx(paired.sign_flip_p(d), abs=0.01)  # se <= 0.002
+    assert paired.sign_flip_p_sampled(np.ones(20)) < 1e-3  # all 20 one way: exact p = 2^-19
+    assert paired.sign_flip_p_sampled(np.ones(20)) == paired.sign_flip_p_sampled(np.ones(20))  # fixed seed
+
+
+def test_pooled_line_takes_every_architecture_and_seed_as_one_vote():
+    # two architectures, 3 and 2 common seeds: the pooled line tests all 5 differences together
+    by_seed = {"a/none": {0: {"dist": 1.0}, 1: {"dist": 1.0}, 2: {"dist": 1.0}},
+               "a/se3": {0: {"dist": 0.5}, 1: {"dist": 0.7}, 2: {"dist": 1.2}},
+               "b/none": {0: {"dist": 2.0}, 1: {"dist": 2.0}, 7: {"dist": 9.0}},
+               "b/se3": {0: {"dist": 1.0}, 1: {"dist": 1.9}},
+               "b/yaw": {0: {"dist": 3.0}}}  # a yaw row alone (one architecture): no pooled yaw line
+    md = paired.paired_markdown(["a/none", "a/se3", "b/none", "b/se3", "b/yaw"], by_seed, metrics=("dist",))
+    d = np.array([-0.5, -0.3, 0.2, -1.0, -0.1])
+    row = next(line for line in md.splitlines() if line.startswith("| every se3 row − its none row"))
+    assert row == (f"| every se3 row − its none row (a, b) | 5 | {d.mean():+.2f} ± {d.std():.2f}, better on 4/5, "
+                   f"p = {paired.sign_flip_p(d):.2f} |")
+    assert "every yaw row" not in md
+    assert "0.062 at 5 seeds" in md  # the pooled line's own floor
+    # --compare variants pool separately, each with its own setting
+    labels = ["a/none x=1", "a/se3 x=1", "b/none x=1", "b/se3 x=1", "a/none x=2", "a/se3 x=2"]
+    assert paired.pooled_groups(paired.pairs(labels)) == {
+        "every se3 row − its none row x=1": [("a/none x=1", "a/se3 x=1"), ("b/none x=1", "b/se3 x=1")]}
+
+
+def test_pooled_line_beyond_the_exact_test_uses_the_sampled_p():
+    by_seed = {}
+    for k in range(6):  # 6 architectures x 3 seeds = 18 > 16 differences
+        by_seed[f"a{k}/none"] = {s: {"dist": 1.0} for s in range(3)}
+        by_seed[f"a{k}/se3"] = {s: {"dist": 0.9} for s in range(3)}
+    md = paired.paired_markdown(list(by_seed), by_seed, metrics=("dist",))
+    assert "| 18 | -0.10 ± 0.00, better on 18/18, p ≈ 0.00 |" in md
