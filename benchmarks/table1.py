@@ -40,6 +40,7 @@ import numpy as np
 from benchmarks.common import ROOT, append_results, commit, load_average, machine
 from benchmarks.learning_speed import REACH_M, speed_markdown, summaries
 from benchmarks.paired import paired_markdown
+from benchmarks.table1_archive import archive_run, existing, read_jsonl, restore_run
 
 DEFAULT_ROWS = ("deepsets/none", "deepsets/se3", "kattention/none", "kattention/se3", "graphormer/none",
                 "graphormer/se3")
@@ -150,16 +151,9 @@ def is_short(rd: Path, agent_steps: int) -> bool:
 
 
 def read_metrics(rd: Path) -> List[dict]:
-    records = []
-    path = rd / "metrics.jsonl"
-    if not path.exists():
-        return records
-    for line in path.read_text().splitlines():
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:  # a torn last line of a killed run
-            continue
-    return records
+    """The run's metrics records (a torn last line of a killed run skipped); an archived run's are gzipped."""
+    path = existing(rd / "metrics.jsonl")
+    return read_jsonl(path) if path else []
 
 
 # ----------------------------------------------------------------------------------------------- evaluate
@@ -194,8 +188,7 @@ def seed_means(episodes_file: Path) -> Dict[str, Dict[str, float]]:
     from swarm_appo.eval_tables import TABLE1_METRICS, summarize_episodes
 
     by_scenario: Dict[str, List[dict]] = {}
-    for line in episodes_file.read_text().splitlines():
-        e = json.loads(line)
+    for e in read_jsonl(episodes_file):
         by_scenario.setdefault(e["eval_scenario"], []).append(e)
     return {s: {**{m: v[0] for m, v in summarize_episodes(eps, TABLE1_METRICS).items()}, "episodes": len(eps)}
             for s, eps in by_scenario.items()}
@@ -343,6 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-results", action="store_true", help="do not append to benchmarks/RESULTS.md")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--report-only", action="store_true", help="train nothing: table and curves of what exists")
+    p.add_argument("--archive", default=None, metavar="DIR",
+                   help="slim copies of finished runs (benchmarks.table1_archive): runs missing from --out are "
+                        "restored from DIR if their recipe matches, and every evaluated run is copied into DIR")
     return p
 
 
@@ -361,6 +357,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (ConfigError, ValueError) as exc:
         p.error(str(exc))
     out = Path(args.out)
+    archive = Path(args.archive) if args.archive else None
+    if archive is not None and archive.resolve() == out.resolve():
+        p.error("--archive must be another folder than --out (report on an archive with --out DIR --report-only)")
+    if archive is not None:
+        from swarm_appo.config import config_to_dict
+
+        for sc, row, seed, cfg in plan:
+            try:
+                if restore_run(run_dir(archive, sc, row, seed), run_dir(out, sc, row, seed), config_to_dict(cfg),
+                               EVAL_DIR):
+                    print(f"restored {row_label(row)} on {sc}, seed {seed} from {archive}", flush=True)
+            except ValueError as exc:
+                p.error(str(exc))
     decaying = [str(run_dir(out, sc, row, seed)) for sc, row, seed, cfg in plan
                 if cfg.algo.lr_schedule != "constant" and is_short(run_dir(out, sc, row, seed), args.agent_steps)]
     if decaying and not args.report_only:  # its lr reached ~0 at the old budget: training on restarts the decay
@@ -385,6 +394,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                   f"(median over the run), {record['wall_s']:.0f} s", flush=True)
         if (rd / "done.json").exists() and not args.report_only:
             evaluate_run(rd, eval_scenarios(sc, args.eval_scenarios), args.episodes, args.workers)
+        if archive is not None and archive_run(rd, run_dir(archive, sc, row, seed), EVAL_DIR):
+            print(f"archived {row_label(row)} on {sc}, seed {seed} -> {run_dir(archive, sc, row, seed)}", flush=True)
 
     sections = []
     figures = []
@@ -403,8 +414,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 records = read_metrics(rd)
                 curves.setdefault(label, []).append(records)
                 curves_by_seed.setdefault(label, {})[seed] = records
-                ep = rd / EVAL_DIR / "episodes.jsonl"
-                if ep.exists():
+                ep = existing(rd / EVAL_DIR / "episodes.jsonl")
+                if ep is not None:
                     per_scenario = seed_means(ep)
                     if len(per_scenario) > 1:
                         per_scenario = {**per_scenario, POOLED: pooled_means(per_scenario)}
