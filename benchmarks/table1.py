@@ -16,6 +16,8 @@ a finished one holds ``done.json`` and is skipped next time, an interrupted one 
 killed experiment resumes where it stopped, and the table fills in row by row. Raising ``--agent-steps`` trains
 every finished run on from its last checkpoint to the new budget (and evaluates it again); with a budget-tied lr
 schedule (``algo.lr_schedule=linear``) that is refused, since the decay would restart mid-run.
+``--archive DIR`` keeps slim copies of the evaluated runs there and restores missing ones from it
+(``benchmarks.table1_archive``), so an experiment can be filled in across machines.
 
 Output: ``<out>/table1.md`` (also appended to benchmarks/RESULTS.md unless ``--no-results``) with one table
 per (training scenario, evaluation scenario): rows x the paper's columns, mean +- std over seeds of each seed's
