@@ -278,9 +278,16 @@ def test_killed_rollout_actor_is_replaced_and_sampling_goes_on(tmp_path, local_r
         sampler.get()
         victim = sampler.worker_pids()[0]
         os.kill(victim, signal.SIGKILL)
-        frags = [sampler.get() for _ in range(6)]
-        assert sampler.restarts == 1
-        assert {f["worker_id"] for f in frags} == {0, 1}, "the replacement worker must produce fragments"
+        # how many fragments the survivor delivers before Ray reports the death depends on the machine's load: wait
+        # for the restart, then for a fragment of the replacement (bounded by a count, not a clock)
+        before, after = [], []
+        while sampler.restarts == 0 and len(before) < 500:
+            before.append(sampler.get())
+        while not any(f["worker_id"] == 0 for f in after) and len(after) < 500:
+            after.append(sampler.get())
+        assert sampler.restarts == 1, f"{len(before)} fragments after the kill and no restart"
+        assert any(f["worker_id"] == 0 for f in after), "the replacement worker must produce fragments"
+        assert {f["worker_id"] for f in after} <= {0, 1}
         assert victim not in sampler.worker_pids()
     finally:
         sampler.close()
