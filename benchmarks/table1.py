@@ -42,7 +42,8 @@ import numpy as np
 from benchmarks.common import ROOT, append_results, commit, load_average, machine
 from benchmarks.learning_speed import REACH_M, speed_markdown, summaries
 from benchmarks.paired import paired_markdown
-from benchmarks.table1_archive import archive_run, existing, read_jsonl, restore_run
+from benchmarks.table1_archive import (archive_run, existing, read_jsonl, recipe_differences, recipe_error,
+                                       restore_run)
 
 DEFAULT_ROWS = ("deepsets/none", "deepsets/se3", "kattention/none", "kattention/se3", "graphormer/none",
                 "graphormer/se3")
@@ -363,15 +364,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if archive is not None and archive.resolve() == out.resolve():
         p.error("--archive must be another folder than --out (report on an archive with --out DIR --report-only)")
     if archive is not None:
-        from swarm_appo.config import config_to_dict
+        from swarm_appo.config import config_to_dict, yaml_load
 
-        for sc, row, seed, cfg in plan:
-            try:
-                if restore_run(run_dir(archive, sc, row, seed), run_dir(out, sc, row, seed), config_to_dict(cfg),
-                               EVAL_DIR):
-                    print(f"restored {row_label(row)} on {sc}, seed {seed} from {archive}", flush=True)
-            except ValueError as exc:
-                p.error(str(exc))
+        pairs = [(run_dir(archive, sc, row, seed), run_dir(out, sc, row, seed), config_to_dict(cfg), row, sc, seed)
+                 for sc, row, seed, cfg in plan]
+        for src, rd, planned, *_ in pairs:  # every archived run checked before any is restored
+            if not rd.exists() and (src / "done.json").exists():
+                diffs = recipe_differences(planned, yaml_load((src / "config.yaml").read_text()))
+                if diffs:
+                    p.error(recipe_error(src, diffs))
+        for src, rd, planned, row, sc, seed in pairs:
+            if restore_run(src, rd, planned, EVAL_DIR):
+                print(f"restored {row_label(row)} on {sc}, seed {seed} from {archive}", flush=True)
     decaying = [str(run_dir(out, sc, row, seed)) for sc, row, seed, cfg in plan
                 if cfg.algo.lr_schedule != "constant" and is_short(run_dir(out, sc, row, seed), args.agent_steps)]
     if decaying and not args.report_only:  # its lr reached ~0 at the old budget: training on restarts the decay

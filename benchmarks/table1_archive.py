@@ -99,6 +99,11 @@ def recipe_differences(planned: Mapping[str, Any], archived: Mapping[str, Any]) 
     return diffs + [f"runner.{k}" for k in RECIPE_RUNNER_KEYS if pr.get(k) != ar.get(k)]
 
 
+def recipe_error(src: Path, diffs: List[str]) -> str:
+    return (f"the archived run {src} was trained with another recipe than this command's ({', '.join(diffs)} "
+            f"differ): archive into another folder, or use that run's recipe")
+
+
 def restore_run(src: Path, rd: Path, planned: Mapping[str, Any], eval_dir: str) -> bool:
     """Copy the archived run ``src`` into the missing run folder ``rd`` (plain files, as the trainer writes them).
     Returns False if ``src`` holds no finished run or ``rd`` exists already (a local run, even a partial one,
@@ -109,8 +114,7 @@ def restore_run(src: Path, rd: Path, planned: Mapping[str, Any], eval_dir: str) 
         return False
     diffs = recipe_differences(planned, yaml_load((src / "config.yaml").read_text()))
     if diffs:
-        raise ValueError(f"the archived run {src} was trained with another recipe than this command's "
-                         f"({', '.join(diffs)} differ): archive into another folder, or use that run's recipe")
+        raise ValueError(recipe_error(src, diffs))
     tmp = rd.with_name(rd.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / eval_dir).mkdir(parents=True)
