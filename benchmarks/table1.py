@@ -42,8 +42,7 @@ import numpy as np
 from benchmarks.common import ROOT, append_results, commit, load_average, machine
 from benchmarks.learning_speed import REACH_M, speed_markdown, summaries
 from benchmarks.paired import paired_markdown
-from benchmarks.table1_archive import (archive_run, existing, read_jsonl, recipe_differences, recipe_error,
-                                       restore_run)
+from benchmarks.table1_archive import archive_run, existing, read_jsonl, restore_runs
 
 DEFAULT_ROWS = ("deepsets/none", "deepsets/se3", "kattention/none", "kattention/se3", "graphormer/none",
                 "graphormer/se3")
@@ -364,18 +363,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if archive is not None and archive.resolve() == out.resolve():
         p.error("--archive must be another folder than --out (report on an archive with --out DIR --report-only)")
     if archive is not None:
-        from swarm_appo.config import config_to_dict, yaml_load
+        from swarm_appo.config import config_to_dict
 
-        pairs = [(run_dir(archive, sc, row, seed), run_dir(out, sc, row, seed), config_to_dict(cfg), row, sc, seed)
+        items = [(run_dir(archive, sc, row, seed), run_dir(out, sc, row, seed), config_to_dict(cfg))
                  for sc, row, seed, cfg in plan]
-        for src, rd, planned, *_ in pairs:  # every archived run checked before any is restored
-            if not rd.exists() and (src / "done.json").exists():
-                diffs = recipe_differences(planned, yaml_load((src / "config.yaml").read_text()))
-                if diffs:
-                    p.error(recipe_error(src, diffs))
-        for src, rd, planned, row, sc, seed in pairs:
-            if restore_run(src, rd, planned, EVAL_DIR):
-                print(f"restored {row_label(row)} on {sc}, seed {seed} from {archive}", flush=True)
+        try:
+            restored = restore_runs(items, EVAL_DIR)
+        except ValueError as exc:
+            p.error(str(exc))
+        for i in restored:
+            sc, row, seed, _ = plan[i]
+            print(f"restored {row_label(row)} on {sc}, seed {seed} from {archive}", flush=True)
     decaying = [str(run_dir(out, sc, row, seed)) for sc, row, seed, cfg in plan
                 if cfg.algo.lr_schedule != "constant" and is_short(run_dir(out, sc, row, seed), args.agent_steps)]
     if decaying and not args.report_only:  # its lr reached ~0 at the old budget: training on restarts the decay

@@ -16,7 +16,7 @@ import gzip
 import json
 import shutil
 from pathlib import Path
-from typing import Any, Iterable, List, Mapping, Optional
+from typing import Any, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 # metrics.jsonl keys the table and its curves read (benchmarks.table1.CURVES, benchmarks.learning_speed)
 CURVE_KEYS = ("global_step", "swarm/success_rate", "swarm/collisions_drone", "swarm/collisions", "swarm/dist")
@@ -99,22 +99,38 @@ def recipe_differences(planned: Mapping[str, Any], archived: Mapping[str, Any]) 
     return diffs + [f"runner.{k}" for k in RECIPE_RUNNER_KEYS if pr.get(k) != ar.get(k)]
 
 
-def recipe_error(src: Path, diffs: List[str]) -> str:
+def _recipe_error(src: Path, rd: Path, planned: Mapping[str, Any]) -> Optional[str]:
+    """None if ``src`` is not to be restored into ``rd`` or matches ``planned``; else the message naming the keys."""
+    from swarm_appo.config import yaml_load
+
+    if rd.exists() or not (src / "done.json").exists():
+        return None
+    diffs = recipe_differences(planned, yaml_load((src / "config.yaml").read_text()))
+    if not diffs:
+        return None
     return (f"the archived run {src} was trained with another recipe than this command's ({', '.join(diffs)} "
             f"differ): archive into another folder, or use that run's recipe")
+
+
+def restore_runs(items: Sequence[Tuple[Path, Path, Mapping[str, Any]]], eval_dir: str) -> List[int]:
+    """``restore_run`` for each (archived run, run folder, planned config), after checking every one of them: a recipe
+    mismatch anywhere raises ValueError before any run is restored. Returns the indices of the restored items."""
+    for src, rd, planned in items:
+        error = _recipe_error(src, rd, planned)
+        if error:
+            raise ValueError(error)
+    return [i for i, (src, rd, planned) in enumerate(items) if restore_run(src, rd, planned, eval_dir)]
 
 
 def restore_run(src: Path, rd: Path, planned: Mapping[str, Any], eval_dir: str) -> bool:
     """Copy the archived run ``src`` into the missing run folder ``rd`` (plain files, as the trainer writes them).
     Returns False if ``src`` holds no finished run or ``rd`` exists already (a local run, even a partial one,
     wins); raises ValueError naming the keys if the archived run was trained with another recipe."""
-    from swarm_appo.config import yaml_load
-
+    error = _recipe_error(src, rd, planned)
+    if error:
+        raise ValueError(error)
     if rd.exists() or not (src / "done.json").exists():
         return False
-    diffs = recipe_differences(planned, yaml_load((src / "config.yaml").read_text()))
-    if diffs:
-        raise ValueError(recipe_error(src, diffs))
     tmp = rd.with_name(rd.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / eval_dir).mkdir(parents=True)

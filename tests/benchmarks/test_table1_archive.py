@@ -4,6 +4,7 @@ import gzip
 import json
 
 import pytest
+import yaml
 
 from benchmarks import table1, table1_archive
 from tests.benchmarks.test_table1 import TINY, one_thread  # noqa: F401  (the fixture)
@@ -82,6 +83,22 @@ def test_restore_leaves_a_local_run_alone_and_archive_skips_unfinished_runs(tmp_
     assert [p.name for p in rd.iterdir()] == ["config.yaml"]
     assert table1_archive.archive_run(rd, tmp_path / "dest", "eval_table1") is False  # no done.json, no episodes
     assert not (tmp_path / "dest").exists()
+
+
+def test_restore_runs_checks_every_recipe_before_restoring_any(tmp_path):
+    planned = {"env": {"num_agents": 8}, "model": {"symmetry": "se3"}, "algo": {"lr": 1e-4}, "runner": {"seed": 0}}
+    items = []
+    for name, lr in (("good", 1e-4), ("other", 3e-4)):  # the matching run comes first
+        src = tmp_path / "arc" / name
+        src.mkdir(parents=True)
+        (src / "done.json").write_text("{}")
+        (src / "config.yaml").write_text(yaml.safe_dump({**planned, "algo": {"lr": lr}}))
+        items.append((src, tmp_path / "out" / name, planned))
+    with pytest.raises(ValueError, match="algo.lr"):
+        table1_archive.restore_runs(items, "eval_table1")
+    assert not (tmp_path / "out").exists()
+    assert table1_archive.restore_runs(items[:1], "eval_table1") == [0]
+    assert (tmp_path / "out" / "good" / "config.yaml").exists()
 
 
 def test_read_jsonl_skips_a_torn_last_line_plain_and_gzipped(tmp_path):
