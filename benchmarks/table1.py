@@ -101,9 +101,14 @@ def row_label(row: Row) -> str:
     return label if row[2] is None else label + " {}={}".format(*_short(row[2]))
 
 
-def run_dir(out: Path, scenario: str, row: Row, seed: int) -> Path:
+def row_name(row: Row) -> str:
+    """A row as a file name: deepsets-se3, deepsets-none-precision-bf16."""
     name = f"{row[0]}-{row[1]}" if row[2] is None else f"{row[0]}-{row[1]}-" + "-".join(_short(row[2]))
-    return out / "runs" / scenario / name.replace("/", "_") / f"seed{seed}"
+    return name.replace("/", "_")
+
+
+def run_dir(out: Path, scenario: str, row: Row, seed: int) -> Path:
+    return out / "runs" / scenario / row_name(row) / f"seed{seed}"
 
 
 def row_config(args, scenario: str, row: Row, seed: int):
@@ -282,7 +287,7 @@ def plot_curves(curves: Dict[str, List[List[dict]]], path: Path, title: str) -> 
             end = min(s[-1, 0] for s in series)
             grid = np.linspace(max(s[0, 0] for s in series), end, 60)
             ys = np.stack([np.interp(grid, s[:, 0], s[:, 1]) for s in series])  # [seeds, 60]
-            line, = ax.plot(grid / 1e6, ys.mean(0), label=label)
+            line, = ax.plot(grid / 1e6, ys.mean(0), label=f"{label} ({len(series)} seed{'s' * (len(series) > 1)})")
             if len(series) > 1:
                 ax.fill_between(grid / 1e6, ys.min(0), ys.max(0), alpha=0.2, color=line.get_color())
             drawn = True
@@ -307,6 +312,21 @@ def budget_label(agent_steps: int) -> str:
         if agent_steps >= scale and agent_steps % (scale // 10) == 0:
             return f"{agent_steps / scale:g}{unit}"
     return str(agent_steps)
+
+
+def seeds_label(seeds: Sequence[int]) -> str:
+    """Seeds as a figure name shows them: seeds0-3 for a range, seeds0+2+5 otherwise."""
+    s = sorted(set(seeds))
+    if len(s) > 2 and s == list(range(s[0], s[-1] + 1)):
+        return f"seeds{s[0]}-{s[-1]}"
+    return "seeds" + "+".join(map(str, s))
+
+
+def figure_name(out_name: str, scenario: str, agent_steps: int, rows: Sequence[Row], seeds: Sequence[int]) -> str:
+    """The curves figure of one report: experiment, training scenario, budget, rows and seeds are all in the name,
+    so a later report with other rows or seeds draws its own file and never redraws the one an earlier entry links."""
+    return (f"{out_name}_{scenario}_{budget_label(agent_steps)}_{'+'.join(row_name(r) for r in rows)}_"
+            f"{seeds_label(seeds)}.png")
 
 
 def _link(path: Path) -> str:
@@ -443,8 +463,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                             f"the run's agent steps; M steps to {REACH_M:g} m = where the curve, smoothed as in the "
                             f"figure, first falls below {REACH_M:g} m, a run that never does counted at its last "
                             f"step)\n\n" + speed)
-        # the budget is in the name: the same --out trained on to a larger budget keeps the earlier figure
-        fig = plot_curves(curves, Path(args.figures) / f"{out.name}_{sc}_{budget_label(args.agent_steps)}.png",
+        fig = plot_curves(curves, Path(args.figures) / figure_name(out.name, sc, args.agent_steps, rows, seeds),
                           f"training curves, {sc} (training episodes, with the training aids; running mean over "
                           f"{SMOOTH_RECORDS} iterations); mean over seeds, band min..max")
         if fig is not None:

@@ -43,7 +43,9 @@ def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_th
     table = (exp / "table1.md").read_text()
     assert "| deepsets/none | 1 |" in table and "| deepsets/se3 | 1 |" in table
     assert "| row | seeds | Rew |" in table and "Suc %" in table and "ColD" in table
-    assert (tmp_path / "fig" / "exp_static_same_goal_768.png").stat().st_size > 1000  # <out>_<scenario>_<budget>
+    first_fig = tmp_path / "fig" / "exp_static_same_goal_768_deepsets-none+deepsets-se3_seeds0.png"
+    assert first_fig.stat().st_size > 1000  # <out>_<scenario>_<budget>_<rows>_<seeds>
+    first_fig_bytes = first_fig.read_bytes()
 
     # a run killed before its first checkpoint (a run dir with a config only) starts again
     killed = exp / "runs" / "static_same_goal" / "deepsets-none" / "seed1"
@@ -65,6 +67,9 @@ def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_th
     assert "- deepsets/none → deepsets/se3, seeds 0, 1: " in table
     out = capsys.readouterr().out
     assert out.count("training deepsets/") == 4  # 2 runs the first time, 2 new ones the second
+    # the second report draws its own figure: the one the first report links still shows what that report saw
+    assert (tmp_path / "fig" / "exp_static_same_goal_768_deepsets-none+deepsets-se3_seeds0+1.png").stat().st_size > 1000
+    assert first_fig.read_bytes() == first_fig_bytes
 
 
 def test_bad_rows_and_recipe_errors_before_training(tmp_path, capsys):
@@ -129,7 +134,7 @@ def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_thread):
     assert steps == sorted(steps) and len(set(steps)) == len(steps)  # one history, no step twice
     # each budget has its own curves figure: the one an earlier report links is not overwritten
     assert sorted(f.name for f in (tmp_path / "fig").glob("*.png")) == [
-        "exp_static_same_goal_1536.png", "exp_static_same_goal_768.png"]
+        "exp_static_same_goal_1536_deepsets-none_seeds0.png", "exp_static_same_goal_768_deepsets-none_seeds0.png"]
 
 
 @pytest.mark.parametrize("steps, label", [(768, "768"), (1536, "1536"), (50_000, "50k"), (1_500, "1.5k"),
@@ -137,6 +142,23 @@ def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_thread):
                                           (1_234_567, "1234567")])
 def test_budget_label(steps, label):
     assert table1.budget_label(steps) == label
+
+
+@pytest.mark.parametrize("seeds, label", [([0], "seeds0"), ([1, 0], "seeds0+1"), ([3, 1, 2, 0], "seeds0-3"),
+                                          ([0, 2, 5], "seeds0+2+5"), ([2, 2, 3, 4], "seeds2-4")])
+def test_seeds_label(seeds, label):
+    assert table1.seeds_label(seeds) == label
+
+
+def test_figure_name_tells_rows_and_seeds_apart():
+    rows = table1.parse_rows("deepsets/none,kattention/se3")
+    name = table1.figure_name("quality_mix_15m", "mix", 15_000_000, rows, [0, 1, 2, 3])
+    assert name == "quality_mix_15m_mix_15M_deepsets-none+kattention-se3_seeds0-3.png"
+    compared = table1.parse_rows("deepsets/none", "runner.precision=fp32,bf16")
+    assert table1.figure_name("e", "mix", 768, compared, [0]) == \
+        "e_mix_768_deepsets-none-precision-fp32+deepsets-none-precision-bf16_seeds0.png"
+    names = {table1.figure_name("e", "mix", 768, r, s) for r in (rows, rows[:1]) for s in ([0], [0, 1])}
+    assert len(names) == 4  # another row set or seed set is another file
 
 
 def test_a_larger_budget_is_refused_for_runs_whose_lr_decays_to_their_budget(tmp_path, one_thread, capsys):
