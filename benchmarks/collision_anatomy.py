@@ -1,6 +1,10 @@
 """Where and how a trained swarm collides: evidence for the quality goal (issue 15, item 6).
 
     python -m benchmarks.collision_anatomy --checkpoint runs/quality3_deepsets_se3 [--episodes 20] [--append]
+    python -m benchmarks.collision_anatomy --checkpoint none=runs/a --checkpoint se3=runs/b --scenario static_same_goal
+
+Several ``--checkpoint [LABEL=]RUN`` are flown on the same episodes (same seed and scenario) and compared in one
+table, a row per checkpoint.
 
 Flies the checkpoint in its evaluation environment (``swarm_appo.evaluation.evaluation_env``: no training aids,
 mean actions, the ``swarm_appo.evaluate`` seed by default) and records, from the public ``VecQuadEnv.get_state``
@@ -16,7 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -28,7 +32,8 @@ TIME_BINS = (0.0, 1.5, 3.0, 5.0, 10.0, np.inf)  # s: the grace period, the appro
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="collision_anatomy", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="checkpoint file or run directory")
+    p.add_argument("--checkpoint", required=True, action="append",
+                   help="checkpoint file or run directory, optionally LABEL=PATH; repeat it to compare runs")
     p.add_argument("--episodes", type=int, default=20, help="swarm episodes, flown in parallel")
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: swarm_appo.evaluate's)")
     p.add_argument("--scenario", default=None, help="scenario (default: the training scenario)")
@@ -114,6 +119,34 @@ def anatomy(checkpoint: str, episodes: int = 20, seed: Optional[int] = None,
     }
 
 
+def parse_checkpoint(text: str) -> Tuple[str, str]:
+    """``LABEL=PATH`` or ``PATH`` (labelled by itself) -> (label, path). A path that exists as given wins over a
+    split at ``=``, so a run folder with ``=`` in its name still works."""
+    label, sep, path = text.partition("=")
+    if sep and label and path and not os.path.exists(text):
+        return label, path
+    return text, text
+
+
+def compare(results: List[Tuple[str, Dict]]) -> str:
+    """One table, a row per checkpoint: contacts by time bin, how they happen, and how the swarm sits afterwards."""
+    bins = results[0][1]["time_bins"]
+    head = " | ".join(f"{lo:g}-{hi:g} s" if np.isfinite(hi) else f">= {lo:g} s" for lo, hi in zip(bins[:-1], bins[1:]))
+    lines = [f"new drone-drone contacts per episode by time, how they happen, and the nearest-neighbour distance from "
+             f"t = 5 s on (contact at {results[0][1]['coll_dist']:.3f} m; proximity distance "
+             f"{results[0][1]['prox_dist']:.3f} m)", "",
+             f"| run | agent steps | scenario, N, episodes, seed | contacts | {head} | stacked % | "
+             f"closing speed (m/s) | pair's goal distance (m) | NN median (m) | NN inside proximity % | Suc % |",
+             "|---|---:|---|---:|" + "---:|" * (len(bins) - 1) + "---:|---:|---:|---:|---:|---:|"]
+    for label, r in results:
+        cells = " | ".join(f"{c:.2f}" for c in r["per_bin_per_episode"])
+        lines.append(f"| {label} | {r['agent_steps']:,} | {r['scenario']}, {r['N']}, {r['episodes']}, {r['seed']} | "
+                     f"{r['contacts_per_episode']:.2f} | {cells} | {100 * r['stacked_share']:.0f} | "
+                     f"{r['closing_speed_median']:.2f} | {r['goal_dist_median']:.2f} | {r['hover_nn_median']:.3f} | "
+                     f"{r['hover_inside_prox_pct']:.0f} | {r['success_pct']:.1f} |")
+    return "\n".join(lines)
+
+
 def report(r: Dict) -> str:
     bins = r["time_bins"]
     head = " | ".join(f"{lo:g}-{hi:g} s" if np.isfinite(hi) else f">= {lo:g} s" for lo, hi in zip(bins[:-1], bins[1:]))
@@ -144,13 +177,16 @@ def main(argv=None) -> Dict:
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")
-    if not os.path.exists(args.checkpoint):
-        parser.error(f"--checkpoint: {args.checkpoint} does not exist (give a checkpoint file or a run directory)")
+    runs = [parse_checkpoint(c) for c in args.checkpoint]
+    for _, path in runs:  # every path checked before anything is flown
+        if not os.path.exists(path):
+            parser.error(f"--checkpoint: {path} does not exist (give a checkpoint file or a run directory)")
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
-    r = anatomy(args.checkpoint, args.episodes, args.seed, args.scenario)
+    results = [(label, anatomy(path, args.episodes, args.seed, args.scenario)) for label, path in runs]
     header = section_header("collision_anatomy", started, argv, ["quad_env", "swarm_appo", "encoders"], load_before)
-    publish("\n".join(header + ["", report(r)]), args.append)
-    return r
+    body = report(results[0][1]) if len(results) == 1 else compare(results)
+    publish("\n".join(header + ["", body]), args.append)
+    return results[0][1] if len(results) == 1 else dict(results)
 
 
 if __name__ == "__main__":

@@ -38,3 +38,42 @@ def test_a_missing_checkpoint_is_a_usage_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         main(["--checkpoint", str(tmp_path / "no_run")])
     assert info.value.code == 2 and "does not exist" in capsys.readouterr().err
+
+
+def test_checkpoint_labels(tmp_path):
+    from benchmarks.collision_anatomy import parse_checkpoint
+
+    assert parse_checkpoint("se3=runs/a") == ("se3", "runs/a")
+    assert parse_checkpoint("runs/a") == ("runs/a", "runs/a")
+    odd = tmp_path / "lr=1e-4"  # a run folder with '=' in its name is a path, not a label
+    odd.mkdir()
+    assert parse_checkpoint(str(odd)) == (str(odd), str(odd))
+
+
+def test_every_checkpoint_is_checked_before_any_is_flown(tmp_path, capsys):
+    import pytest
+
+    from benchmarks.collision_anatomy import main
+    with pytest.raises(SystemExit) as info:
+        main(["--checkpoint", f"a={tmp_path}", "--checkpoint", f"b={tmp_path / 'missing'}"])
+    assert info.value.code == 2 and f"{tmp_path / 'missing'} does not exist" in capsys.readouterr().err
+
+
+def test_compare_puts_one_row_per_checkpoint():
+    from benchmarks.collision_anatomy import TIME_BINS, compare
+
+    def result(contacts, stacked):
+        return {"time_bins": TIME_BINS, "coll_dist": 0.092, "prox_dist": 0.184, "agent_steps": 15_007_744,
+                "scenario": "static_same_goal", "N": 8, "episodes": 50, "seed": 2024,
+                "contacts_per_episode": contacts, "per_bin_per_episode": [0.0, 0.1, 0.2, 1.5, 1.25],
+                "stacked_share": stacked, "closing_speed_median": 0.2, "goal_dist_median": 0.5,
+                "hover_nn_median": 0.25, "hover_inside_prox_pct": 30.0, "success_pct": 12.5}
+
+    text = compare([("none", result(3.05, 0.07)), ("se3", result(5.7, 0.1))])
+    lines = text.splitlines()
+    assert lines[2].startswith("| run | agent steps |")
+    assert "| 0-1.5 s | 1.5-3 s | 3-5 s | 5-10 s | >= 10 s |" in lines[2]
+    assert len(lines[3].split("|")) == len(lines[2].split("|"))  # the separator has a cell per column
+    assert lines[4] == ("| none | 15,007,744 | static_same_goal, 8, 50, 2024 | 3.05 | 0.00 | 0.10 | 0.20 | 1.50 | "
+                        "1.25 | 7 | 0.20 | 0.50 | 0.250 | 30 | 12.5 |")
+    assert lines[5].startswith("| se3 |") and "| 5.70 |" in lines[5] and "| 10 |" in lines[5]
