@@ -128,10 +128,14 @@ def parse_checkpoint(text: str) -> Tuple[str, str]:
     return text, text
 
 
+def _time_bins_header(bins) -> str:
+    return " | ".join(f"{lo:g}-{hi:g} s" if np.isfinite(hi) else f">= {lo:g} s" for lo, hi in zip(bins[:-1], bins[1:]))
+
+
 def compare(results: List[Tuple[str, Dict]]) -> str:
     """One table, a row per checkpoint: contacts by time bin, how they happen, and how the swarm sits afterwards."""
     bins = results[0][1]["time_bins"]
-    head = " | ".join(f"{lo:g}-{hi:g} s" if np.isfinite(hi) else f">= {lo:g} s" for lo, hi in zip(bins[:-1], bins[1:]))
+    head = _time_bins_header(bins)
     lines = [f"new drone-drone contacts per episode by time, how they happen, and the nearest-neighbour distance from "
              f"t = 5 s on (contact at {results[0][1]['coll_dist']:.3f} m; proximity distance "
              f"{results[0][1]['prox_dist']:.3f} m)", "",
@@ -149,7 +153,7 @@ def compare(results: List[Tuple[str, Dict]]) -> str:
 
 def report(r: Dict) -> str:
     bins = r["time_bins"]
-    head = " | ".join(f"{lo:g}-{hi:g} s" if np.isfinite(hi) else f">= {lo:g} s" for lo, hi in zip(bins[:-1], bins[1:]))
+    head = _time_bins_header(bins)
     cells = " | ".join(f"{c:.2f}" for c in r["per_bin_per_episode"])
     return "\n".join([
         f"{r['run']} ({r['agent_steps']:,} agent steps), {r['scenario']}, N = {r['N']}, {r['episodes']} episodes, "

@@ -26,7 +26,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from benchmarks.common import load_average, publish, section_header
-from benchmarks.paired import min_p, pairs, sign_flip_p
+from benchmarks.paired import min_p, pairs, sign_flip_test
 from benchmarks.table1 import EVAL_DIR, parse_rows, row_label, run_dir
 from benchmarks.table1_archive import existing, read_jsonl
 
@@ -95,6 +95,12 @@ def load(out: Path, scenario: str, rows, seeds: Sequence[int]) -> Dict[str, Dict
     return found
 
 
+def _p(diffs: np.ndarray) -> str:
+    """The sign-flip p with its floor at this many seeds; ``≈`` where it is sampled (more than 16 differences)."""
+    p, exact = sign_flip_test(diffs)
+    return f"{p:.2f} ({min_p(len(diffs)):.3f})" if exact else f"≈ {p:.2f}"
+
+
 def report(found: Dict[str, Dict[int, List[dict]]], labels: Sequence[str], metric: str,
            bins: Sequence[float]) -> str:
     key, column = METRICS[metric]
@@ -126,15 +132,15 @@ def report(found: Dict[str, Dict[int, List[dict]]], labels: Sequence[str], metri
         cov = np.mean([r["coverage"] for r in per_seed.values()])
         votes += list(adj)
         lines.append(f"| {other} − {base} | {len(adj)} | {raw.mean():+.2f} ± {raw.std():.2f} | "
-                     f"{adj.mean():+.2f} ± {adj.std():.2f} | {int((adj > 0).sum())}/{len(adj)} | "
-                     f"{sign_flip_p(adj):.2f} ({min_p(len(adj)):.3f}) | {cov:.0%} |")
+                     f"{adj.mean():+.2f} ± {adj.std():.2f} | {int((adj > 0).sum())}/{len(adj)} | {_p(adj)} | "
+                     f"{cov:.0%} |")
         details.append(f"- {base} → {other}, seeds {', '.join(map(str, per_seed))}: raw "
                        + ", ".join(f"{r['raw']:+.2f}" for r in per_seed.values()) + "; at equal distance "
                        + ", ".join(f"{r['adjusted']:+.2f}" for r in per_seed.values()))
     if len(details) > 1:
         v = np.array(votes)
         lines.append(f"| every pair above (one vote per architecture and seed) | {len(v)} | | {v.mean():+.2f} ± "
-                     f"{v.std():.2f} | {int((v > 0).sum())}/{len(v)} | {sign_flip_p(v):.2f} ({min_p(len(v)):.3f}) | |")
+                     f"{v.std():.2f} | {int((v > 0).sum())}/{len(v)} | {_p(v)} | |")
     return "\n".join(lines + [""] + details)
 
 

@@ -44,6 +44,13 @@ def sign_flip_p_sampled(diffs: Sequence[float], draws: int = 2 ** 16, seed: int 
     return float(np.mean(np.abs(signs @ d) >= observed - 1e-9 * max(1.0, observed)))
 
 
+def sign_flip_test(diffs: Sequence[float]) -> Tuple[float, bool]:
+    """``(p, exact)``: the exact sign-flip p for up to ``MAX_EXACT_SEEDS`` differences, the sampled estimate beyond
+    (a pooled line over many architectures and seeds can pass that)."""
+    exact = len(diffs) <= MAX_EXACT_SEEDS
+    return (sign_flip_p(diffs) if exact else sign_flip_p_sampled(diffs)), exact
+
+
 def min_p(n: int) -> float:
     """The smallest p the exact two-sided sign-flip test can give with n seeds."""
     return min(1.0, 2.0 / 2 ** n)
@@ -140,8 +147,7 @@ def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str
                 continue
             d = np.concatenate([f["other"] - f["base"] for f in found])
             n = max(n, d.size)
-            exact = d.size <= MAX_EXACT_SEEDS
-            p = sign_flip_p(d) if exact else sign_flip_p_sampled(d)
+            p, exact = sign_flip_test(d)
             dec = cols[m].decimals
             cells.append(f"{d.mean():+.{dec}f} ± {d.std():.{dec}f}, better on {sum(f['better'] for f in found)}/"
                          f"{d.size}, p {'=' if exact else '≈'} {p:.2f}")

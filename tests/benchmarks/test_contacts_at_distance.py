@@ -83,3 +83,11 @@ def test_bad_input_is_named(tmp_path, capsys):
     with pytest.raises(SystemExit):
         cad.main(["--out", str(tmp_path), "--rows", "deepset/none"])
     assert "architecture/symmetry" in capsys.readouterr().err
+
+
+def test_a_pooled_line_of_more_than_16_votes_uses_the_sampled_p():
+    labels = ["deepsets/none", "deepsets/se3", "kattention/none", "kattention/se3"]
+    found = {label: {s: [ep(0.2, 1 + (label.endswith("se3")))] for s in range(9)} for label in labels}
+    text = cad.report(found, labels, "cold", BINS)
+    assert "| deepsets/se3 − deepsets/none | 9 | +1.00 ± 0.00 | +1.00 ± 0.00 | 9/9 | 0.00 (0.004) | 100% |" in text
+    assert "| every pair above (one vote per architecture and seed) | 18 | | +1.00 ± 0.00 | 18/18 | ≈ 0.00 | |" in text

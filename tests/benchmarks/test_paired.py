@@ -115,3 +115,10 @@ def test_pooled_line_beyond_the_exact_test_uses_the_sampled_p():
         by_seed[f"a{k}/se3"] = {s: {"dist": 0.9} for s in range(3)}
     md = paired.paired_markdown(list(by_seed), by_seed, metrics=("dist",))
     assert "| 18 | -0.10 ± 0.00, better on 18/18, p ≈ 0.00 |" in md
+
+
+def test_sign_flip_test_is_exact_up_to_the_limit_and_sampled_beyond():
+    d = np.linspace(0.1, 1.0, paired.MAX_EXACT_SEEDS)
+    assert paired.sign_flip_test(d) == (paired.sign_flip_p(d), True)
+    more = np.ones(paired.MAX_EXACT_SEEDS + 1)
+    assert paired.sign_flip_test(more) == (paired.sign_flip_p_sampled(more), False)
