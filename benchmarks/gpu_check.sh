@@ -16,11 +16,17 @@
 # train_metrics.jsonl, summary.txt. Paste summary.txt and learner.log's table into benchmarks/RESULTS.md.
 # Checked without a GPU (same steps on the CPU, shorter):
 #     DEVICE=cpu TRAIN_S=40 LEARNER_S=2 WORKERS=1 bash benchmarks/gpu_check.sh
+# runner.compile (torch.compile of the learner's forward, against the launch-bound GPU learner), e.g.:
+#     ENCODERS=se3_graphormer PRECISIONS=fp32 LEARNER_COMPILE=off,default,reduce-overhead \
+#     TRAIN_COMPILE=reduce-overhead TRAIN_S=150 bash benchmarks/gpu_check.sh
 set -u
 OUT=${OUT:-gpu_check_out}
 mkdir -p "$OUT"
 PY=${PYTHON:-python3}
 DEVICE=${DEVICE:-cuda} TRAIN_S=${TRAIN_S:-180} LEARNER_S=${LEARNER_S:-10} WORKERS=${WORKERS:-0}
+ENCODERS=${ENCODERS:-se3_graphormer,se3_kattention} PRECISIONS=${PRECISIONS:-fp32,bf16}
+LEARNER_COMPILE=${LEARNER_COMPILE:-off} TRAIN_COMPILE=${TRAIN_COMPILE:-off}
+LEARNER_TIMEOUT=${LEARNER_TIMEOUT:-170}  # each compiled row adds its compilation (about a minute)
 RUNS=$(mktemp -d)
 
 source benchmarks/gpu_setup.sh
@@ -37,15 +43,16 @@ SMI=$!
 
 echo "== 1. learner alone (paper sizes, fp32 vs bf16) $(date -u +%T)"
 # runner.envs_per_worker=4: the batch (4096 agent steps, one fragment) is collected on one CPU core 4x sooner
-timeout 170 $PY -m benchmarks.gpu_learner --device $DEVICE --seconds $LEARNER_S --no-append runner.envs_per_worker=4 \
+timeout $LEARNER_TIMEOUT $PY -m benchmarks.gpu_learner --device $DEVICE --seconds $LEARNER_S --encoders $ENCODERS \
+    --precisions $PRECISIONS --compile $LEARNER_COMPILE --no-append runner.envs_per_worker=4 \
     > "$OUT/learner.log" 2>&1
 echo "rc=$?" >> "$OUT/learner.log"; tail -6 "$OUT/learner.log"
 
 train() {  # $1: run name, then overrides
     local name=$1; shift
     echo "== $name $(date -u +%T)" >> "$OUT/train.log"
-    timeout $((TRAIN_S + 120)) $PY -m launchers.local --config configs/paper.yaml runner.device=$DEVICE \
-        runner.precision=auto runner.time_limit_s=$TRAIN_S runner.checkpoint_every_s=60 \
+    timeout $((TRAIN_S + 180)) $PY -m launchers.local --config configs/paper.yaml runner.device=$DEVICE \
+        runner.precision=auto runner.compile=$TRAIN_COMPILE runner.time_limit_s=$TRAIN_S runner.checkpoint_every_s=60 \
         runner.final_eval_episodes=2 wandb.mode=disabled runner.run_dir="$RUNS" runner.name=$name "$@" \
         --no-progress >> "$OUT/train.log" 2>&1
     local rc=$?

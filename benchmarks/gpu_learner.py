@@ -2,13 +2,15 @@
 bf16, and its peak device memory (issue 16 items 1 and 5: the GPU path, bf16 on a GPU).
 
     python -m benchmarks.gpu_learner [--device cuda] [--encoders se3_graphormer,se3_kattention]
-                                     [--precisions fp32,bf16] [--seconds 20] [--config configs/paper.yaml]
+                                     [--precisions fp32,bf16] [--compile off,reduce-overhead] [--seconds 20]
+                                     [--config configs/paper.yaml]
 
 One batch of real fragments (the trainer's batch: fragments until ``algo.batch_size`` agent steps) is collected
 once on the CPU by a RolloutWorker of the config's environment; then the learner trains on it again and again,
 its current policy version stamped on the batch each time (so no sample is masked as stale). learner agent-steps/s
 = agent steps of the batch / time of one ``Learner.train`` call (all epochs; CUDA synchronised), best of the timed
-calls after one warm-up call. That is the rate at which rollout workers must deliver to keep this learner busy.
+calls after one warm-up call (whose time, "first call", holds the compilation under ``--compile``). That is the
+rate at which rollout workers must deliver to keep this learner busy.
 Runs on a CPU too (``--device cpu``), which is how it is checked where there is no GPU.
 """
 from __future__ import annotations
@@ -47,13 +49,13 @@ def collect_batch(cfg) -> List[Dict]:
     return batch
 
 
-def make_learner(cfg, device: torch.device, precision: str):
+def make_learner(cfg, device: torch.device, precision: str, compile: str = "off"):
     from swarm_appo.learner import Learner
     from swarm_appo.model import model_factory
 
     torch.manual_seed(cfg.runner.seed)
     return Learner(model_factory(cfg.env.obs_layout(), cfg.model)(), cfg.algo, device, seed=cfg.runner.seed,
-                   precision=precision)
+                   precision=precision, compile=compile)
 
 
 def timed_call(learner, batch: List[Dict], device: torch.device) -> float:
@@ -69,41 +71,43 @@ def timed_call(learner, batch: List[Dict], device: torch.device) -> float:
     return time.perf_counter() - t0
 
 
-def time_learner(cfg, batch: List[Dict], device: torch.device, precision: str, seconds: float) -> Dict[str, float]:
-    learner = make_learner(cfg, device, precision)
+def time_learner(cfg, batch: List[Dict], device: torch.device, precision: str, seconds: float,
+                 compile: str = "off") -> Dict[str, float]:
+    learner = make_learner(cfg, device, precision, compile)
     steps = sum(f["num_agent_steps"] for f in batch)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
 
-    timed_call(learner, batch, device)  # warm-up: allocations, kernel selection
+    first = timed_call(learner, batch, device)  # warm-up: allocations, kernel selection, compilation
     times, t_end = [], time.perf_counter() + seconds
     while time.perf_counter() < t_end or len(times) < 2:
         times.append(timed_call(learner, batch, device))
     best = min(times)
-    out = {"steps_per_s": steps / best, "call_s": best, "calls": len(times), "batch_steps": steps,
-           "updates_per_call": cfg.algo.num_epochs * -(-steps // cfg.algo.batch_size)}
+    out = {"steps_per_s": steps / best, "call_s": best, "first_call_s": first, "calls": len(times),
+           "batch_steps": steps, "updates_per_call": cfg.algo.num_epochs * -(-steps // cfg.algo.batch_size)}
     if device.type == "cuda":
         out["peak_mem_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
     return out
 
 
-def profile_call(cfg, batch: List[Dict], device: torch.device, precision: str, rows: int = 15) -> str:
+def profile_call(cfg, batch: List[Dict], device: torch.device, precision: str, rows: int = 15,
+                 compile: str = "off") -> str:
     """One ``Learner.train`` call under torch.profiler (after a warm-up call): its top operators by self CPU
     time, the kernel count and the device's busy time against the wall time, i.e. where a learner that is
     slower than its device's arithmetic spends the call."""
     from torch.profiler import ProfilerActivity, profile
 
-    learner = make_learner(cfg, device, precision)
-    timed_call(learner, batch, device)  # warm-up: allocations, kernel selection
+    learner = make_learner(cfg, device, precision, compile)
+    timed_call(learner, batch, device)  # warm-up: allocations, kernel selection, compilation
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     with profile(activities=activities) as prof:
         wall = timed_call(learner, batch, device)
     events = prof.key_averages()
     dev_us = sum(getattr(e, "self_device_time_total", 0.0) for e in events)
     kernels = sum(e.count for e in events if getattr(e, "self_device_time_total", 0.0) > 0)
-    head = (f"profile {cfg.model.encoder}/{precision}: wall {wall * 1e3:,.0f} ms (under the profiler); device busy "
-            f"{dev_us / 1e3:,.0f} ms ({dev_us / 1e4 / wall:.0f} %); {kernels:,} device kernels/copies; "
-            f"{torch.get_num_threads()} CPU thread(s)")
+    head = (f"profile {cfg.model.encoder}/{precision}/compile {compile}: wall {wall * 1e3:,.0f} ms (under the "
+            f"profiler); device busy {dev_us / 1e3:,.0f} ms ({dev_us / 1e4 / wall:.0f} %); {kernels:,} device "
+            f"kernels/copies; {torch.get_num_threads()} CPU thread(s)")
     return head + "\n" + events.table(sort_by="self_cpu_time_total", row_limit=rows, max_name_column_width=48)
 
 
@@ -112,6 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--encoders", default="se3_graphormer,se3_kattention", help="comma-separated encoder names")
     p.add_argument("--precisions", default="fp32,bf16", help="comma-separated: fp32, bf16")
+    p.add_argument("--compile", default="off",
+                   help="comma-separated runner.compile modes to time (off, default, reduce-overhead)")
     p.add_argument("--seconds", type=float, default=20.0, help="timed training per (encoder, precision)")
     p.add_argument("--config", default=str(ROOT / "configs" / "paper.yaml"))
     p.add_argument("--threads", type=int, default=0,
@@ -131,14 +137,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     device = torch.device(args.device)
     encoders = [e.strip() for e in args.encoders.split(",") if e.strip()]
     precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
+    from swarm_appo.config import COMPILE_MODES
+
+    compiles = [c.strip() for c in args.compile.split(",") if c.strip()]
+    bad = [c for c in compiles if c not in COMPILE_MODES]
+    if bad:
+        raise SystemExit(f"--compile: {bad} not in {list(COMPILE_MODES)}")
     if args.threads < 0:
         raise SystemExit(f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     bad = [p for p in precisions if p not in ("fp32", "bf16")]
     if bad:
         raise SystemExit(f"--precisions: {bad} not in ['fp32', 'bf16']")
     load_before = load_average()
-    lines = ["| encoder | precision | batch (agent steps) | updates/call | call (s) | learner agent-steps/s | "
-             "vs fp32 | peak device MiB |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| encoder | precision | compile | batch (agent steps) | updates/call | first call (s) | call (s) | "
+             "learner agent-steps/s | vs fp32, off | peak device MiB |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name in encoders:
         try:
             cfg = load_config(args.config, [f"model.encoder={name}", "model.symmetry=null", *args.overrides])
@@ -147,17 +160,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         batch = collect_batch(cfg)
         if args.threads:
             torch.set_num_threads(args.threads)
-        fp32_rate = None
+        base = None  # the fp32, uncompiled rate: every row is compared with it
         for precision in precisions:
-            r = time_learner(cfg, batch, device, precision, args.seconds)
-            fp32_rate = r["steps_per_s"] if precision == "fp32" else fp32_rate
-            ratio = f"{r['steps_per_s'] / fp32_rate:.2f}x" if fp32_rate and precision != "fp32" else "-"
-            mem = f"{r['peak_mem_mb']:,.0f}" if "peak_mem_mb" in r else "-"
-            lines.append(f"| {name} | {precision} | {r['batch_steps']:,} | {r['updates_per_call']} | "
-                         f"{r['call_s']:.3f} | {r['steps_per_s']:,.0f} | {ratio} | {mem} |")
-            print(lines[-1], flush=True)
-            if args.profile:
-                print(profile_call(cfg, batch, device, precision), flush=True)
+            for mode in compiles:
+                r = time_learner(cfg, batch, device, precision, args.seconds, mode)
+                base = r["steps_per_s"] if (precision, mode) == ("fp32", "off") else base
+                ratio = f"{r['steps_per_s'] / base:.2f}x" if base and (precision, mode) != ("fp32", "off") else "-"
+                mem = f"{r['peak_mem_mb']:,.0f}" if "peak_mem_mb" in r else "-"
+                lines.append(f"| {name} | {precision} | {mode} | {r['batch_steps']:,} | {r['updates_per_call']} | "
+                             f"{r['first_call_s']:.1f} | {r['call_s']:.3f} | {r['steps_per_s']:,.0f} | {ratio} | "
+                             f"{mem} |")
+                print(lines[-1], flush=True)
+                if args.profile:
+                    print(profile_call(cfg, batch, device, precision, compile=mode), flush=True)
     text = "\n".join([
         f"## gpu_learner — {datetime.datetime.now().isoformat(timespec='seconds')}",
         "",

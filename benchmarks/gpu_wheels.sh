@@ -13,6 +13,7 @@ dl() { python3 -m pip download -q --no-deps --only-binary=:all: --python-version
 dl .whl jsonschema jsonschema-specifications referencing rpds-py gymnasium farama-notifications
 TMP=$(mktemp -d); dl "$TMP" "ray==$RAY"
 (cd "$TMP" && unzip -q ray-*.whl && rm ray-*.whl && rm -rf ray/jars ray/rllib ray/data ray/serve ray/llm ray/train \
-    ray/tune ray/dashboard/client/build && tar -cJf ray_slim.tar.xz --exclude=ray_slim.tar.xz .)
-mv "$TMP/ray_slim.tar.xz" .whl/ && rm -rf "$TMP"
+    ray/tune ray/dashboard/client/build)
+# the archive is written beside the unpacked tree, not in it (tar refuses a folder that changes as it reads)
+tar -cJf .whl/ray_slim.tar.xz -C "$TMP" . && rm -rf "$TMP"
 du -sh .whl

@@ -30,6 +30,7 @@ DEVICES = ("auto", "cpu", "cuda")
 WANDB_MODES = ("offline", "online", "disabled")
 LR_SCHEDULES = ("constant", "linear")
 PRECISIONS = ("auto", "fp32", "bf16")  # runner.precision (swarm_appo.precision resolves "auto")
+COMPILE_MODES = ("off", "default", "reduce-overhead")  # runner.compile: torch.compile modes of the learner forward
 
 
 class ConfigError(ValueError):
@@ -183,6 +184,13 @@ class RunnerConfig:
     ``model.size: paper``; fp32 otherwise, and on CUDA, where the learner is launch-bound at these batch sizes
     (``swarm_appo.precision``). The choice and its reason are logged and written at the top of the run's
     config.yaml."""
+    compile: str = "off"
+    """``torch.compile`` the learner's forward (``evaluate_sequence``; its backward follows): "off", "default"
+    (fuses the many small element-wise ops into fewer kernels) or "reduce-overhead" (also replays them as CUDA
+    graphs). Meant for a CUDA learner, which is bound by kernel launches at these batch sizes (RESULTS.md,
+    gpu_check); its gain there is not measured yet (``benchmarks/gpu_check.sh`` with ``LEARNER_COMPILE``). Costs
+    compile time at start (about a minute on a CPU core for the paper's Graphormer) and gained nothing on a CPU
+    learner, which is bound by its matmuls. Checkpoints and exported policies are the same either way."""
     inference_precision: str = "auto"
     """The rollout workers' inference precision: "fp32", "bf16" or "auto", the same rule as ``precision``,
     resolved by each worker on its own CPU."""
@@ -586,6 +594,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
                "runner.name", "must be a plain folder name (no path separators) or null", r.name)
 
     _check(r.precision in PRECISIONS, "runner.precision", f"must be one of {list(PRECISIONS)}", r.precision)
+    _check(r.compile in COMPILE_MODES, "runner.compile", f"must be one of {list(COMPILE_MODES)}", r.compile)
     _check(r.inference_precision in PRECISIONS, "runner.inference_precision", f"must be one of {list(PRECISIONS)}",
            r.inference_precision)
     if r.init_checkpoint is not None:  # (whether it exists and fits is the trainer's check: a run's saved config

@@ -14,6 +14,7 @@ from typing import Any, Dict, List, Tuple
 import numpy as np
 import torch
 
+from swarm_appo.config import COMPILE_MODES
 from swarm_appo.losses import appo_loss
 from swarm_appo.metrics import LagStats
 from swarm_appo.precision import autocast
@@ -54,11 +55,18 @@ def swarm_members(cols: torch.Tensor, num_agents: int) -> torch.Tensor:
 class Learner:
     """Owns the model being trained, its optimizer and the policy version counter."""
 
-    def __init__(self, model: torch.nn.Module, algo, device: torch.device, seed: int, precision: str = "fp32"):
+    def __init__(self, model: torch.nn.Module, algo, device: torch.device, seed: int, precision: str = "fp32",
+                 compile: str = "off"):
         self.algo = algo
         self.device = device
         self.precision = precision  # "fp32" | "bf16" (resolved): the forward passes run under autocast
         self.model = model.to(device)
+        # runner.compile: the training forward compiled (the bound method, so state_dict keys are unchanged)
+        if compile not in COMPILE_MODES:
+            raise ValueError(f"unknown compile mode {compile!r}; valid: {list(COMPILE_MODES)}")
+        self.compile = compile
+        self._evaluate_sequence = (self.model.evaluate_sequence if compile == "off"
+                                   else torch.compile(self.model.evaluate_sequence, mode=compile))
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=algo.lr, betas=tuple(algo.adam_betas),
                                           eps=algo.adam_eps)
         self.generator = torch.Generator().manual_seed(seed)
@@ -156,7 +164,7 @@ class Learner:
         state0 = t["rnn_state"][cols] if recurrent else None  # [b, S]
         starts = torch.cat([torch.zeros_like(done[:1]), done[:-1]]) if recurrent else None  # [T, b]
         with autocast(self.precision, self.device):  # bf16 matmuls; the model returns fp32 means and values
-            log_prob, entropy, values, states = self.model.evaluate_sequence(obs, actions, state0, starts, swarm)
+            log_prob, entropy, values, states = self._evaluate_sequence(obs, actions, state0, starts, swarm)
 
         with torch.no_grad(), autocast(self.precision, self.device):
             last_swarm = None if members is None else t["last_obs"][members]  # [b, N, D]

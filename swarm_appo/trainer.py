@@ -397,7 +397,8 @@ class Trainer:
 
         seed_everything(cfg.runner.seed)
         self.make_model = model_factory(cfg.env.obs_layout(), cfg.model)
-        self.learner = Learner(self.make_model(), cfg.algo, self.device, seed=cfg.runner.seed, precision=precision)
+        self.learner = Learner(self.make_model(), cfg.algo, self.device, seed=cfg.runner.seed, precision=precision,
+                               compile=cfg.runner.compile)
         self.agent_steps = 0
         if state is not None:
             self.learner.load_state_dict(state.learner)

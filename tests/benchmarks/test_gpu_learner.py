@@ -27,7 +27,8 @@ def test_times_each_precision_with_the_threads_asked_and_profiles_one_call(capsy
     out = capsys.readouterr().out
     rows = {}
     for line in out.splitlines():
-        m = re.match(r"\| deepsets \| (fp32|bf16) \| ([\d,]+) \| (\d+) \| ([\d.]+) \| ([\d,]+) \| (\S+) \|", line)
+        m = re.match(r"\| deepsets \| (fp32|bf16) \| off \| ([\d,]+) \| (\d+) \| [\d.]+ \| ([\d.]+) \| ([\d,]+) \| "
+                     r"(\S+) \|", line)
         if m:
             rows[m[1]] = m.groups()[1:]
     assert set(rows) == {"fp32", "bf16"}
@@ -40,12 +41,14 @@ def test_times_each_precision_with_the_threads_asked_and_profiles_one_call(capsy
         assert 64 / (call + 0.0005) - 1 <= rate <= (64 / (call - 0.0005) + 1 if call > 0.0005 else float("inf"))
     assert rows["fp32"][4] == "-" and rows["bf16"][4].endswith("x")
     for precision in ("fp32", "bf16"):
-        assert re.search(rf"profile deepsets/{precision}: wall [\d,]+ ms .* 1 CPU thread\(s\)", out)
+        assert re.search(rf"profile deepsets/{precision}/compile off: wall [\d,]+ ms .* 1 CPU thread\(s\)", out)
     assert "aten::" in out  # the operator table
 
 
-def test_unknown_precision_and_negative_threads_are_refused():
+def test_unknown_precision_compile_mode_and_negative_threads_are_refused():
     with pytest.raises(SystemExit, match="fp16"):
         gpu_learner.main(["--device", "cpu", "--precisions", "fp16", "--no-append"])
+    with pytest.raises(SystemExit, match="--compile.*max"):
+        gpu_learner.main(["--device", "cpu", "--compile", "off,max", "--no-append"])
     with pytest.raises(SystemExit, match="--threads"):
         gpu_learner.main(["--device", "cpu", "--threads", "-2", "--no-append"])
