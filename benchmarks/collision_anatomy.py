@@ -128,6 +128,15 @@ def parse_checkpoint(text: str) -> Tuple[str, str]:
     return text, text
 
 
+def checked_checkpoints(parser: argparse.ArgumentParser, texts: List[str]) -> List[Tuple[str, str]]:
+    """``--checkpoint`` values as (label, path), every path checked before anything is flown (a usage error)."""
+    runs = [parse_checkpoint(c) for c in texts]
+    for _, path in runs:
+        if not os.path.exists(path):
+            parser.error(f"--checkpoint: {path} does not exist (give a checkpoint file or a run directory)")
+    return runs
+
+
 def _time_bins_header(bins) -> str:
     return " | ".join(f"{lo:g}-{hi:g} s" if np.isfinite(hi) else f">= {lo:g} s" for lo, hi in zip(bins[:-1], bins[1:]))
 
@@ -181,10 +190,7 @@ def main(argv=None) -> Dict:
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")
-    runs = [parse_checkpoint(c) for c in args.checkpoint]
-    for _, path in runs:  # every path checked before anything is flown
-        if not os.path.exists(path):
-            parser.error(f"--checkpoint: {path} does not exist (give a checkpoint file or a run directory)")
+    runs = checked_checkpoints(parser, args.checkpoint)
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     results = [(label, anatomy(path, args.episodes, args.seed, args.scenario)) for label, path in runs]
     header = section_header("collision_anatomy", started, argv, ["quad_env", "swarm_appo", "encoders"], load_before)

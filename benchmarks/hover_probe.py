@@ -1,0 +1,133 @@
+"""How a trained swarm sits at its goals: the offset in each drone's own frame, and whether it holds still or
+circles (the Graphormer `se3` rows' low success on `mix`, RESULTS.md notes of 2026-12-05).
+
+    python -m benchmarks.hover_probe --checkpoint se3=RUN --checkpoint none=RUN [--scenario static_diff_goal]
+                                     [--num-agents 1] [--episodes 10] [--window 3] [--append]
+
+Flies each checkpoint in its evaluation environment (``swarm_appo.evaluation.evaluation_env``: no training aids,
+mean actions, the ``swarm_appo.evaluate`` seed by default; ``--num-agents`` replaces N, e.g. 1 for a drone
+without neighbours) and, over the last ``--window`` seconds of every episode, reads each drone's position,
+velocity and attitude from ``VecQuadEnv.get_state``:
+
+- Dist: median distance to the goal; body offset: the mean of R^T (x - x^d), the offset in the drone's own axes
+  (a steady bias of the policy in its frame shows here whatever the drone's heading);
+- yaw turned: |heading change| over the window; speed; path: the distance flown in the window; net move: the
+  distance between the window's first and last positions (path >> net move: the drone circles);
+- Suc: the environment's success (within 0.5 m during the whole last second, no collision).
+
+A measurement, not a timing: it may run while other work shares the cores.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from benchmarks.collision_anatomy import checked_checkpoints
+from benchmarks.common import load_average, publish, section_header
+
+
+def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndarray, dt: float) -> Dict[str, float]:
+    """Statistics of a window of T control steps for M drones: ``pos``, ``goal``, ``vel`` [T, M, 3], ``rot``
+    [T, M, 3, 3] (body -> world), ``dt`` the control step (s). Medians over drones unless named a mean."""
+    off = pos - goal  # [T, M, 3] world
+    body = np.einsum("tmji,tmj->tmi", rot, off)  # R^T off: [T, M, 3] in the drone's axes
+    yaw = np.unwrap(np.arctan2(rot[..., 1, 0], rot[..., 0, 0]), axis=0)  # [T, M] heading of the body x axis
+    path = np.linalg.norm(np.diff(pos, axis=0), axis=-1).sum(0)  # [M]
+    return {
+        "dist": float(np.median(np.linalg.norm(off, axis=-1))),
+        "body_offset": body.mean(axis=(0, 1)).tolist(),  # mean over drones and steps [3]
+        "body_offset_norm": float(np.median(np.linalg.norm(body.mean(0), axis=-1))),  # |per-drone mean|
+        "yaw_turned_deg": float(np.degrees(np.median(np.abs(yaw[-1] - yaw[0])))),
+        "speed": float(np.mean(np.linalg.norm(vel, axis=-1))),
+        "path": float(np.median(path)),
+        "net_move": float(np.median(np.linalg.norm(pos[-1] - pos[0], axis=-1))),
+        "window_s": float((pos.shape[0] - 1) * dt),
+    }
+
+
+def probe(checkpoint: str, episodes: int = 10, window_s: float = 3.0, seed: Optional[int] = None,
+          scenario: Optional[str] = None, num_agents: Optional[int] = None) -> Dict:
+    from quad_env import VecQuadEnv
+    from swarm_appo.evaluation import default_eval_seed, evaluation_env, load_checkpoint_policy, model_policy
+
+    loaded = load_checkpoint_policy(checkpoint)
+    env_cfg = evaluation_env(loaded.cfg.env, num_agents=num_agents, scenario=scenario)
+    seed = default_eval_seed(loaded.cfg.runner.seed) if seed is None else seed
+    policy = model_policy(loaded.model)
+    steps, dt = env_cfg.episode_steps, env_cfg.control_dt
+    first = steps - int(round(window_s / dt))  # the window: steps first..steps (its first state included)
+    if first < 0:
+        raise ValueError(f"--window {window_s} s is longer than the episode ({steps * dt:g} s)")
+    env = VecQuadEnv(env_cfg, num_envs=episodes, seed=seed, auto_reset=False)
+    obs = env.reset()
+    frames: List = []
+    for step in range(1, steps + 1):
+        obs, _, term, trunc = env.step(policy(obs))
+        if step >= first:
+            frames.append(env.get_state())
+        if (term | trunc).all():
+            break
+    episode_stats = env.pop_episode_stats()
+    stack = lambda k: np.stack([getattr(s, k) for s in frames])  # noqa: E731
+    out = hover_stats(stack("pos"), stack("goal"), stack("rot"), stack("vel"), dt)
+    out.update({"run": loaded.run_name, "agent_steps": loaded.agent_steps, "scenario": env_cfg.scenario,
+                "N": env_cfg.num_agents, "episodes": episodes, "seed": seed,
+                "success_pct": 100.0 * float(np.mean([st["success_rate"] for st in episode_stats]))})
+    return out
+
+
+def table(results: List[Tuple[str, Dict]]) -> str:
+    lines = ["| run | scenario, N, episodes, seed | window (s) | Dist (m) | body offset x, y, z (m) | "
+             "per-drone body offset (m) | yaw turned (deg) | speed (m/s) | path (m) | net move (m) | Suc % |",
+             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+    for label, r in results:
+        bx, by, bz = r["body_offset"]
+        lines.append(f"| {label} | {r['scenario']}, {r['N']}, {r['episodes']}, {r['seed']} | {r['window_s']:.1f} | "
+                     f"{r['dist']:.2f} | {bx:+.2f}, {by:+.2f}, {bz:+.2f} | {r['body_offset_norm']:.2f} | "
+                     f"{r['yaw_turned_deg']:.0f} | {r['speed']:.2f} | {r['path']:.2f} | {r['net_move']:.2f} | "
+                     f"{r['success_pct']:.1f} |")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hover_probe", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint", required=True, action="append",
+                   help="checkpoint file or run directory, optionally LABEL=PATH; repeat it to compare runs")
+    p.add_argument("--scenario", action="append", default=None,
+                   help="scenario (default: the training scenario); repeat it for several")
+    p.add_argument("--num-agents", type=int, action="append", default=None,
+                   help="swarm size N (default: the training N); repeat it for several")
+    p.add_argument("--episodes", type=int, default=10, help="swarm episodes per row, flown in parallel")
+    p.add_argument("--window", type=float, default=3.0, help="the last seconds of each episode that are measured")
+    p.add_argument("--seed", type=int, default=None, help="episode seed (default: swarm_appo.evaluate's)")
+    p.add_argument("--append", action="store_true", help="append the table to benchmarks/RESULTS.md")
+    return p
+
+
+def main(argv=None) -> List[Tuple[str, Dict]]:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error("--episodes must be >= 1")
+    if args.window <= 0:
+        parser.error("--window must be > 0 s")
+    if any(n < 1 for n in args.num_agents or []):
+        parser.error("--num-agents must be >= 1")
+    runs = checked_checkpoints(parser, args.checkpoint)
+    started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
+    results = []
+    for scenario in args.scenario or [None]:
+        for n in args.num_agents or [None]:
+            for label, path in runs:
+                results.append((label, probe(path, args.episodes, args.window, args.seed, scenario, n)))
+    header = section_header("hover_probe", started, argv, ["quad_env", "swarm_appo", "encoders"], load_before)
+    publish("\n".join(header + ["", table(results)]), args.append)
+    return results
+
+
+if __name__ == "__main__":
+    main()

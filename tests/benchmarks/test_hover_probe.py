@@ -1,0 +1,71 @@
+"""benchmarks.hover_probe: window statistics on analytic trajectories (a drone circling its goal with a fixed
+offset in its own frame, a drone holding still), the table, and usage errors."""
+import numpy as np
+import pytest
+
+from benchmarks.hover_probe import hover_stats, main, table
+
+
+def rz(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_a_drone_circling_with_a_body_frame_offset():
+    # yaw(t) = w t; the drone sits at R(t) (0, r, 0) from its goal: it circles at radius r, speed w r
+    r, w, dt, T = 0.55, 0.6, 0.01, 301  # 3 s window
+    t = np.arange(T) * dt
+    rot = np.stack([rz(w * ti) for ti in t])[:, None]  # [T, 1, 3, 3]
+    goal = np.tile([1.0, -2.0, 2.0], (T, 1, 1))  # [T, 1, 3]
+    pos = goal + np.einsum("tmij,j->tmi", rot, np.array([0.0, r, 0.0]))
+    vel = np.einsum("tmij,j->tmi", rot, np.array([-w * r, 0.0, 0.0]))  # d/dt R(t) (0, r, 0)
+    s = hover_stats(pos, goal, rot, vel, dt)
+    assert s["dist"] == pytest.approx(r)
+    assert s["body_offset"] == pytest.approx([0.0, r, 0.0], abs=1e-12)
+    assert s["body_offset_norm"] == pytest.approx(r)
+    assert s["yaw_turned_deg"] == pytest.approx(np.degrees(w * 3.0))
+    assert s["speed"] == pytest.approx(w * r)
+    assert s["path"] == pytest.approx(w * r * 3.0, rel=1e-4)  # the arc, summed over chords
+    assert s["net_move"] == pytest.approx(2 * r * np.sin(w * 3.0 / 2))  # the chord
+    assert s["window_s"] == pytest.approx(3.0)
+
+
+def test_drones_holding_still_at_world_offsets_have_no_common_body_offset():
+    # two drones, headings 0 and 180 degrees, each 0.3 m east of its goal: body offsets (+0.3, 0, 0), (-0.3, 0, 0)
+    T, dt = 11, 0.01
+    rot = np.stack([np.stack([rz(0.0), rz(np.pi)])] * T)  # [T, 2, 3, 3]
+    goal = np.zeros((T, 2, 3))
+    pos = goal + np.array([0.3, 0.0, 0.0])
+    s = hover_stats(pos, goal, rot, np.zeros((T, 2, 3)), dt)
+    assert s["dist"] == pytest.approx(0.3)
+    assert s["body_offset"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)  # the mean over drones cancels
+    assert s["body_offset_norm"] == pytest.approx(0.3)  # each drone's own offset does not
+    assert (s["yaw_turned_deg"], s["speed"], s["path"], s["net_move"]) == (0.0, 0.0, 0.0, 0.0)
+
+
+def test_table_has_a_row_per_result_and_a_cell_per_column():
+    r = {"scenario": "static_diff_goal", "N": 8, "episodes": 10, "seed": 7, "window_s": 3.0, "dist": 0.55,
+         "body_offset": [0.11, 0.57, -0.05], "body_offset_norm": 0.58, "yaw_turned_deg": 96.4, "speed": 0.33,
+         "path": 0.97, "net_move": 0.45, "success_pct": 6.0}
+    lines = table([("se3", r), ("none", dict(r, body_offset=[0.0, -0.01, 0.0]))]).splitlines()
+    assert len(lines) == 4 and all(len(line.split("|")) == len(lines[0].split("|")) for line in lines)
+    assert lines[2] == ("| se3 | static_diff_goal, 8, 10, 7 | 3.0 | 0.55 | +0.11, +0.57, -0.05 | 0.58 | 96 | 0.33 | "
+                        "0.97 | 0.45 | 6.0 |")
+    assert lines[3].startswith("| none |") and "+0.00, -0.01, +0.00" in lines[3]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--episodes", "0"], "--episodes must be >= 1"),
+    (["--window", "0"], "--window must be > 0"),
+    (["--num-agents", "0"], "--num-agents must be >= 1"),
+])
+def test_bad_arguments_are_usage_errors(tmp_path, capsys, args, message):
+    with pytest.raises(SystemExit) as info:
+        main(["--checkpoint", str(tmp_path), *args])
+    assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_every_checkpoint_is_checked_before_any_is_flown(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--checkpoint", f"a={tmp_path}", "--checkpoint", f"b={tmp_path / 'missing'}"])
+    assert info.value.code == 2 and f"{tmp_path / 'missing'} does not exist" in capsys.readouterr().err
