@@ -117,6 +117,11 @@ def main(argv=None) -> List[Tuple[str, Dict]]:
         parser.error("--window must be > 0 s")
     if any(n < 1 for n in args.num_agents or []):
         parser.error("--num-agents must be >= 1")
+    from quad_env.scenarios import SCENARIOS
+
+    unknown = [name for name in args.scenario or [] if name not in SCENARIOS]
+    if unknown:
+        parser.error(f"--scenario: unknown {unknown}; valid: {sorted(SCENARIOS)}")
     runs = checked_checkpoints(parser, args.checkpoint)
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     results = []

@@ -58,6 +58,8 @@ def test_table_has_a_row_per_result_and_a_cell_per_column():
     (["--episodes", "0"], "--episodes must be >= 1"),
     (["--window", "0"], "--window must be > 0"),
     (["--num-agents", "0"], "--num-agents must be >= 1"),
+    (["--scenario", "static_same_goal", "--scenario", "statc_same_goal"],
+     "--scenario: unknown ['statc_same_goal']; valid: ['dynamic_diff_goal',"),
 ])
 def test_bad_arguments_are_usage_errors(tmp_path, capsys, args, message):
     with pytest.raises(SystemExit) as info:
