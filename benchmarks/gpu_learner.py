@@ -132,13 +132,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    from swarm_appo.config import ConfigError, load_config
+    from swarm_appo.config import COMPILE_MODES, ConfigError, load_config
 
     device = torch.device(args.device)
     encoders = [e.strip() for e in args.encoders.split(",") if e.strip()]
     precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
-    from swarm_appo.config import COMPILE_MODES
-
     compiles = [c.strip() for c in args.compile.split(",") if c.strip()]
     bad = [c for c in compiles if c not in COMPILE_MODES]
     if bad:

@@ -48,12 +48,12 @@ def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndar
     }
 
 
-def probe(checkpoint: str, episodes: int = 10, window_s: float = 3.0, seed: Optional[int] = None,
+def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int] = None,
           scenario: Optional[str] = None, num_agents: Optional[int] = None) -> Dict:
+    """Fly ``loaded`` (``swarm_appo.evaluation.load_checkpoint_policy``) and measure the window (module docstring)."""
     from quad_env import VecQuadEnv
-    from swarm_appo.evaluation import default_eval_seed, evaluation_env, load_checkpoint_policy, model_policy
+    from swarm_appo.evaluation import default_eval_seed, evaluation_env, model_policy
 
-    loaded = load_checkpoint_policy(checkpoint)
     env_cfg = evaluation_env(loaded.cfg.env, num_agents=num_agents, scenario=scenario)
     seed = default_eval_seed(loaded.cfg.runner.seed) if seed is None else seed
     policy = model_policy(loaded.model)
@@ -124,11 +124,14 @@ def main(argv=None) -> List[Tuple[str, Dict]]:
         parser.error(f"--scenario: unknown {unknown}; valid: {sorted(SCENARIOS)}")
     runs = checked_checkpoints(parser, args.checkpoint)
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
+    from swarm_appo.evaluation import load_checkpoint_policy
+
+    policies = [(label, load_checkpoint_policy(path)) for label, path in runs]  # each loaded once
     results = []
     for scenario in args.scenario or [None]:
         for n in args.num_agents or [None]:
-            for label, path in runs:
-                results.append((label, probe(path, args.episodes, args.window, args.seed, scenario, n)))
+            for label, loaded in policies:
+                results.append((label, probe(loaded, args.episodes, args.window, args.seed, scenario, n)))
     header = section_header("hover_probe", started, argv, ["quad_env", "swarm_appo", "encoders"], load_before)
     publish("\n".join(header + ["", table(results)]), args.append)
     return results

@@ -64,7 +64,6 @@ class Learner:
         # runner.compile: the training forward compiled (the bound method, so state_dict keys are unchanged)
         if compile not in COMPILE_MODES:
             raise ValueError(f"unknown compile mode {compile!r}; valid: {list(COMPILE_MODES)}")
-        self.compile = compile
         self._evaluate_sequence = (self.model.evaluate_sequence if compile == "off"
                                    else torch.compile(self.model.evaluate_sequence, mode=compile))
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=algo.lr, betas=tuple(algo.adam_betas),
