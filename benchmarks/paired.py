@@ -6,6 +6,9 @@ seed alone does, and an exact sign-flip test says how often a difference that la
 Under the per-architecture lines, one line per symmetry pools the pairs of every architecture (one vote per
 (architecture, seed)): the test of "this symmetry helps whatever the encoder", the paper's group-modular claim.
 
+An experiment run with ``--compare KEY=V1,V2`` is paired the same way along the compared key: each row's ``V2``
+variant against its ``V1`` variant (the first value given is the reference), e.g. bf16 against fp32 at equal seeds.
+
 With n paired seeds the smallest attainable two-sided p is 2 / 2^n (0.25 at 3 seeds, 0.125 at 4, 0.031 at 6):
 a claim at the 5 % level needs at least 6 seeds whatever the effect size. The report prints that floor with p.
 """
@@ -69,15 +72,39 @@ def pairs(labels: Sequence[str]) -> List[Tuple[str, str]]:
     return out
 
 
+def compare_pairs(labels: Sequence[str]) -> List[Tuple[str, str]]:
+    """(reference, variant) for every ``--compare`` variant of a row: ``arch/sym key=V2`` against ``arch/sym
+    key=V1``, where V1 is the first value of that key in ``labels`` (the order ``--compare`` gave)."""
+    first: Dict[Tuple[str, str], str] = {}
+    out = []
+    for label in labels:
+        head, sep, setting = label.partition(" ")
+        if not sep:
+            continue
+        reference = first.setdefault((head, setting.partition("=")[0]), label)
+        if reference != label:
+            out.append((reference, label))
+    return out
+
+
+def all_pairs(labels: Sequence[str]) -> List[Tuple[str, str]]:
+    """Every pair the report tests: symmetry rows against their ``none`` rows, then ``--compare`` variants."""
+    return pairs(labels) + compare_pairs(labels)
+
+
 def pooled_groups(pair_list: Sequence[Tuple[str, str]]) -> Dict[str, List[Tuple[str, str]]]:
-    """The pairs grouped by what they test: the symmetry (and the ``--compare`` setting), over architectures.
-    Label of each group: ``every <symmetry> row − its none row[ <setting>]``; only groups of >= 2 architectures."""
+    """The pairs grouped by what they test, over rows: a symmetry (with its ``--compare`` setting) over
+    architectures, ``every <symmetry> row − its none row[ <setting>]``; or a ``--compare`` value over rows,
+    ``every <setting> row − its <reference setting> row``. Only groups of >= 2 pairs."""
     groups: Dict[str, List[Tuple[str, str]]] = {}
     for base, other in pair_list:
         head, sep, setting = other.partition(" ")
-        symmetry = head.partition("/")[2]
-        groups.setdefault(f"every {symmetry} row − its none row" + (sep + setting if sep else ""), []).append(
-            (base, other))
+        base_head, _, base_setting = base.partition(" ")
+        if head == base_head:  # a --compare pair: same row, two settings
+            name = f"every {setting} row − its {base_setting} row"
+        else:
+            name = f"every {head.partition('/')[2]} row − its none row" + (sep + setting if sep else "")
+        groups.setdefault(name, []).append((base, other))
     return {k: v for k, v in groups.items() if len(v) >= 2}
 
 
@@ -106,12 +133,12 @@ def paired_stats(base: Dict[int, Dict[str, float]], other: Dict[int, Dict[str, f
 
 def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str, float]]],
                     metrics: Sequence[str] = PAIRED_METRICS, specs: Optional[Mapping[str, Any]] = None) -> str:
-    """A table of the paired differences (symmetry row minus its ``none`` row), one row per pair, and the
-    per-seed values under it; "" when the experiment has no such pair with a common seed. ``metrics`` and
-    ``specs`` as in ``paired_stats`` (default: the evaluation's columns)."""
+    """A table of the paired differences (symmetry row minus its ``none`` row; ``--compare`` variant minus its
+    reference), one row per pair, and the per-seed values under it; "" when the experiment has no such pair with a
+    common seed. ``metrics`` and ``specs`` as in ``paired_stats`` (default: the evaluation's columns)."""
     cols = specs if specs is not None else _eval_specs()
     rows, details, counts = [], [], set()
-    for base, other in pairs(labels):
+    for base, other in all_pairs(labels):
         if base not in by_seed or other not in by_seed:
             continue
         stats = {m: paired_stats(by_seed[base], by_seed[other], m, cols) for m in metrics}
@@ -136,7 +163,7 @@ def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str
         return ""
     # The same symmetry over every architecture (the paper's "group-modular" claim): all (architecture, seed) pairs
     # in one test, each pair one vote.
-    for name, group in pooled_groups(pairs(labels)).items():
+    for name, group in pooled_groups(all_pairs(labels)).items():
         present = [(b, o) for b, o in group if b in by_seed and o in by_seed]
         cells, n = [], 0
         for m in metrics:
@@ -152,15 +179,17 @@ def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str
             cells.append(f"{d.mean():+.{dec}f} ± {d.std():.{dec}f}, better on {sum(f['better'] for f in found)}/"
                          f"{d.size}, p {'=' if exact else '≈'} {p:.2f}")
         if n:
-            archs = ", ".join(o.partition("/")[0] for _, o in present)
+            same_row = all(b.partition(" ")[0] == o.partition(" ")[0] for b, o in present)  # --compare pairs
+            archs = ", ".join(o.partition(" ")[0] if same_row else o.partition("/")[0] for _, o in present)
             rows.append(f"| {name} ({archs}) | {n} | " + " | ".join(cells) + " |")
             counts.add(n)
     floor = ", ".join(f"{min_p(n):.3f} at {n} seed{'s' if n != 1 else ''}" for n in sorted(counts))
     head = ("| paired by seed | seeds | " + " | ".join(f"Δ {cols[m].column}" for m in metrics) + " |")
     return "\n".join([
-        "Paired by seed (the symmetry row minus its `none` row on each common seed; mean ± population std of the "
-        "differences; better on k/n = seeds where the symmetry row is better; p = exact two-sided sign-flip "
-        "test; an `every ... row` line pools the pairs of every architecture, one vote per (architecture, seed); "
+        "Paired by seed (on each common seed, the symmetry row minus its `none` row, or a `--compare` variant "
+        "minus the first value's; mean ± population std of the differences; better on k/n = seeds where the "
+        "first-named row is better; p = exact two-sided sign-flip test; an `every ... row` line pools the pairs of "
+        "every row, one vote per (row, seed); "
         f"the smallest p these seeds allow: {floor}):",
         "",
         head, "|---|---:|" + "---|" * len(metrics), *rows, "", *details])

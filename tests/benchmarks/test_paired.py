@@ -122,3 +122,30 @@ def test_sign_flip_test_is_exact_up_to_the_limit_and_sampled_beyond():
     assert paired.sign_flip_test(d) == (paired.sign_flip_p(d), True)
     more = np.ones(paired.MAX_EXACT_SEEDS + 1)
     assert paired.sign_flip_test(more) == (paired.sign_flip_p_sampled(more), False)
+
+
+def test_compare_pairs_join_each_variant_to_the_first_value_of_its_row():
+    labels = ["a/none p=fp32", "a/none p=bf16", "a/se3 p=fp32", "a/se3 p=bf16", "b/se3 p=fp32", "a/none"]
+    assert paired.compare_pairs(labels) == [("a/none p=fp32", "a/none p=bf16"), ("a/se3 p=fp32", "a/se3 p=bf16")]
+    assert paired.compare_pairs(["a/se3 p=1", "a/se3 p=2", "a/se3 p=3"]) == [("a/se3 p=1", "a/se3 p=2"),
+                                                                           ("a/se3 p=1", "a/se3 p=3")]
+    assert paired.compare_pairs(["a/none", "a/se3"]) == []  # no --compare: nothing to pair along a key
+    # all_pairs: the symmetry pairs within each setting, then the compare pairs
+    assert paired.all_pairs(labels[:4]) == [("a/none p=fp32", "a/se3 p=fp32"), ("a/none p=bf16", "a/se3 p=bf16"),
+                                            ("a/none p=fp32", "a/none p=bf16"), ("a/se3 p=fp32", "a/se3 p=bf16")]
+
+
+def test_paired_markdown_reports_compare_variants_and_pools_them_over_rows():
+    # bf16 against fp32 on two rows, 2 seeds each: the per-row lines and the pooled line over the 4 (row, seed) pairs
+    by_seed = {"a/se3 p=fp32": {0: {"dist": 1.0}, 1: {"dist": 0.8}},
+               "a/se3 p=bf16": {0: {"dist": 0.9}, 1: {"dist": 1.0}},
+               "b/se3 p=fp32": {0: {"dist": 0.5}, 1: {"dist": 0.6}},
+               "b/se3 p=bf16": {0: {"dist": 0.4}, 1: {"dist": 0.3}}}
+    md = paired.paired_markdown(list(by_seed), by_seed, metrics=("dist",))
+    assert "| a/se3 p=bf16 − a/se3 p=fp32 | 2 | +0.05 ± 0.15, better on 1/2, p = 1.00 |" in md
+    assert "| b/se3 p=bf16 − b/se3 p=fp32 | 2 | -0.20 ± 0.10, better on 2/2, p = 0.50 |" in md
+    d = np.array([-0.1, 0.2, -0.1, -0.3])
+    assert (f"| every p=bf16 row − its p=fp32 row (a/se3, b/se3) | 4 | {d.mean():+.2f} ± {d.std():.2f}, better on "
+            f"3/4, p = {paired.sign_flip_p(d):.2f} |") in md
+    assert "- a/se3 p=fp32 → a/se3 p=bf16, seeds 0, 1: Dist 1.00→0.90, 0.80→1.00" in md
+    assert "every se3 row" not in md  # no none row here: no symmetry pair
