@@ -87,6 +87,11 @@ def compare_pairs(labels: Sequence[str]) -> List[Tuple[str, str]]:
     return out
 
 
+def is_compare_pair(base: str, other: str) -> bool:
+    """True for a ``--compare`` pair (one row, two settings), False for a symmetry pair (two rows)."""
+    return base.partition(" ")[0] == other.partition(" ")[0]
+
+
 def all_pairs(labels: Sequence[str]) -> List[Tuple[str, str]]:
     """Every pair the report tests: symmetry rows against their ``none`` rows, then ``--compare`` variants."""
     return pairs(labels) + compare_pairs(labels)
@@ -99,9 +104,8 @@ def pooled_groups(pair_list: Sequence[Tuple[str, str]]) -> Dict[str, List[Tuple[
     groups: Dict[str, List[Tuple[str, str]]] = {}
     for base, other in pair_list:
         head, sep, setting = other.partition(" ")
-        base_head, _, base_setting = base.partition(" ")
-        if head == base_head:  # a --compare pair: same row, two settings
-            name = f"every {setting} row − its {base_setting} row"
+        if is_compare_pair(base, other):
+            name = f"every {setting} row − its {base.partition(' ')[2]} row"
         else:
             name = f"every {head.partition('/')[2]} row − its none row" + (sep + setting if sep else "")
         groups.setdefault(name, []).append((base, other))
@@ -161,8 +165,8 @@ def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str
         details.append(f"- {base} → {other}, seeds {', '.join(map(str, seeds))}: {per_seed}")
     if not rows:
         return ""
-    # The same symmetry over every architecture (the paper's "group-modular" claim): all (architecture, seed) pairs
-    # in one test, each pair one vote.
+    # The same symmetry over every architecture (the paper's "group-modular" claim), or the same --compare value over
+    # every row: all (row, seed) pairs in one test, each pair one vote.
     for name, group in pooled_groups(all_pairs(labels)).items():
         present = [(b, o) for b, o in group if b in by_seed and o in by_seed]
         cells, n = [], 0
@@ -179,8 +183,7 @@ def paired_markdown(labels: Sequence[str], by_seed: Dict[str, Dict[int, Dict[str
             cells.append(f"{d.mean():+.{dec}f} ± {d.std():.{dec}f}, better on {sum(f['better'] for f in found)}/"
                          f"{d.size}, p {'=' if exact else '≈'} {p:.2f}")
         if n:
-            same_row = all(b.partition(" ")[0] == o.partition(" ")[0] for b, o in present)  # --compare pairs
-            archs = ", ".join(o.partition(" ")[0] if same_row else o.partition("/")[0] for _, o in present)
+            archs = ", ".join(o.partition(" ")[0] if is_compare_pair(b, o) else o.partition("/")[0] for b, o in present)
             rows.append(f"| {name} ({archs}) | {n} | " + " | ".join(cells) + " |")
             counts.add(n)
     floor = ", ".join(f"{min_p(n):.3f} at {n} seed{'s' if n != 1 else ''}" for n in sorted(counts))
