@@ -41,12 +41,24 @@ NODE_INPUTS = 10  # per node, in its own frame: velocity (3), goal offset (3), b
 POSE_CHANNELS = 4  # vector channels of a node's pose: its position and the 3 columns of its attitude
 
 
-@full_precision
-def rotate(R: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
-    """R @ V for rotations R [B, N, 3, 3] and spatial-major vector blocks V [B, N, (H,) 3, C]."""
+def low_precision(t: torch.Tensor) -> torch.Tensor:
+    """``t`` cast to the autocast dtype inside an autocast region (once, for several matmuls), else ``t``."""
+    if t.is_floating_point() and torch.is_autocast_enabled(t.device.type):
+        return t.to(torch.get_autocast_dtype(t.device.type))
+    return t
+
+
+def rotate_features(R: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
+    """R @ V for rotations R [B, N, 3, 3] and spatial-major vector blocks V [B, N, (H,) 3, C], in the dtype
+    autocast gives (bf16 under bf16): used on the layers' features, which the layers' matmuls round to bf16
+    anyway. Observations and the readout go through ``rotate``, which stays fp32."""
     if V.dim() == 5:
         return torch.einsum("bnij,bnhjc->bnhic", R, V)
     return torch.einsum("bnij,bnjc->bnic", R, V)
+
+
+rotate = full_precision(rotate_features)
+rotate.__doc__ = "``rotate_features`` in fp32 even under autocast (``encoders.frames.full_precision``)."
 
 
 class Graph:
@@ -92,28 +104,38 @@ class EquivariantGraphormerLayer(nn.Module):
     def forward(self, f: torch.Tensor, g: Graph) -> torch.Tensor:
         B, N, _ = f.shape
         m, H, C = self.m, self.heads, POSE_CHANNELS + self.m
+        # Tensors are cut with split, not slices: a slice's backward writes a zero-filled copy of the whole
+        # tensor per slice, and this layer is bound by memory traffic once its GEMMs are fast (bf16).
+        # Under bf16 autocast the pair work below runs in bf16 from one cast of f and of the graph's small
+        # tensors (each matmul would cast them again); the residual stream, LayerNorm and softmax stay fp32.
+        f_lp = low_precision(f)
+        F, Ft, pose = low_precision(g.F), low_precision(g.Ft), low_precision(g.pose)
+        f_s, f_v = f_lp.split([m, 3 * m], dim=-1)  # [B, N, m] scalars, [B, N, 3m] vector block
         # world-frame node data z_p = [s_p | (x_p, R_p, F_p V_p) as a spatial-major vector block]
-        vec_world = torch.cat([g.pose, rotate(g.F, f[..., m:].unflatten(-1, (3, m)))], dim=-1)  # [B, N, 3, C]
-        z = torch.cat([f[..., :m], vec_world.flatten(-2)], dim=-1)  # [B, N, Z]
+        vec_world = torch.cat([pose, rotate_features(F, f_v.unflatten(-1, (3, m)))], dim=-1)  # [B, N, 3, C]
+        z = torch.cat([f_s, vec_world.flatten(-2)], dim=-1)  # [B, N, Z]
 
         # keys: q_v . W_K x_vp = w_v . z_p + (term constant in p), w_v = W_K^T q_v with its vectors in world axes
-        q = self.W_Q(f).unflatten(-1, (H, self.head_dim))  # [B, N, H, d]
-        w = torch.einsum("bnhd,hdx->bnhx", q, self.W_K.weight.unflatten(0, (H, self.head_dim)))
-        w = w * (1.0 / math.sqrt(self.head_dim))  # [B, N, H, X] in v's frame
-        w_vec = rotate(g.F, w[..., 1 + m:].unflatten(-1, (3, C)))  # [B, N, H, 3, C] world axes
-        w_world = torch.cat([w[..., 1:1 + m], w_vec.flatten(-2)], dim=-1)  # [B, N, H, Z]
-        logits = torch.bmm(w_world.reshape(B, N * H, -1), z.transpose(1, 2)).view(B, N, H, N)
-        logits = logits + w[..., :1] * g.dist.unsqueeze(2)  # distance term, [B, N, H, N]
-        logits = logits.masked_fill(~g.edges.unsqueeze(2), torch.finfo(f.dtype).min)
+        q = self.W_Q(f_lp).unflatten(-1, (H, self.head_dim))  # [B, N, H, d]
+        W_K = self.W_K.weight.unflatten(0, (H, self.head_dim)) * (1.0 / math.sqrt(self.head_dim))  # [H, d, X]
+        w = torch.einsum("bnhd,hdx->bnhx", q, W_K)  # [B, N, H, X] in v's frame
+        w_dist, w_s, w_v = w.split([1, m, 3 * C], dim=-1)
+        w_vec = rotate_features(F, w_v.unflatten(-1, (3, C)))  # [B, N, H, 3, C] world axes
+        w_world = torch.cat([w_s, w_vec.flatten(-2)], dim=-1)  # [B, N, H, Z]
+        # z on the left: its gradient (summed with the value product's) comes out contiguous
+        logits = torch.bmm(z, w_world.reshape(B, N * H, -1).transpose(1, 2)).transpose(1, 2).view(B, N, H, N)
+        logits = logits + w_dist * g.dist.unsqueeze(2)  # distance term, [B, N, H, N]
+        logits = logits.masked_fill(~g.edges.unsqueeze(2), torch.finfo(logits.dtype).min)
         alpha = torch.softmax(logits, dim=-1)  # [B, N(v), H, N(p)]; each row has its self-loop
 
         # values: sum_p alpha_vp x_vp = canon_v(sum_p alpha_vp z_p), then W_V per head
-        agg = torch.bmm(alpha.reshape(B, N * H, N), z).view(B, N, H, -1)  # [B, N, H, Z] world
+        agg = torch.bmm(alpha.reshape(B, N * H, N).to(z.dtype), z).view(B, N, H, -1)  # [B, N, H, Z] world
         agg_dist = torch.einsum("bvhp,bvp->bvh", alpha, g.dist).unsqueeze(-1)  # [B, N, H, 1]
-        agg_vec = agg[..., m:].unflatten(-1, (3, C))
-        agg_vec = torch.cat([agg_vec[..., :1] - g.x.view(B, N, 1, 3, 1), agg_vec[..., 1:]], dim=-1)
-        agg_vec = rotate(g.Ft, agg_vec)  # [B, N, H, 3, C] in v's frame
-        pair = torch.cat([agg_dist, agg[..., :m], agg_vec.flatten(-2)], dim=-1)  # [B, N, H, X]
+        agg_s, agg_v = agg.split([m, 3 * C], dim=-1)
+        agg_x, agg_rest = agg_v.unflatten(-1, (3, C)).split([1, C - 1], dim=-1)
+        agg_vec = torch.cat([agg_x - low_precision(g.x).view(B, N, 1, 3, 1), agg_rest], dim=-1)
+        agg_vec = rotate_features(Ft, agg_vec)  # [B, N, H, 3, C] in v's frame
+        pair = torch.cat([agg_dist.to(agg.dtype), agg_s, agg_vec.flatten(-2)], dim=-1)  # [B, N, H, X]
         if H == 1:
             attn = self.W_V(pair.squeeze(2))  # [B, N, F]
         else:

@@ -3,7 +3,10 @@
 Under bf16 the weights and the optimizer state stay fp32 (autocast casts the inputs of each matmul, and
 its gradients come back in fp32); the policy's mean and value leave the model in fp32
 (``ActorCritic.forward``), so log-probs, importance ratios, V-trace and the loss reductions are fp32; the
-frame rotations of the symmetric encoders run in fp32 too (``encoders.frames.full_precision``).
+canonicalization of the observations and the typed readout of the symmetric encoders run in fp32 too
+(``encoders.frames.full_precision``), so their inputs are exactly canonical. Inside the Graphormer's layers
+the rotations of the hidden features and the pair products read bf16 operands, cast once per layer
+(``encoders.graphormer``): their values are rounded to bf16 by the next matmul anyway.
 
 ``runner.precision: auto`` resolves on the learner's device:
 

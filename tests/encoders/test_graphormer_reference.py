@@ -73,6 +73,65 @@ def test_layer_matches_pairwise_reference(heads, edge_radius):
         assert np.abs(reference_layer(layer, f, R, x, node_mask, None) - slow).max() > 1e-3
 
 
+
+def layer_inputs(heads=2, m=2, B=2, N=4, seed=3):
+    torch.manual_seed(seed)
+    layer = EquivariantGraphormerLayer(m, heads, ffn_dim=6, act="relu").double()
+    rng = np.random.default_rng(seed)
+    R = random_rotation(rng, (B, N))
+    x = rng.standard_normal((B, N, 3))
+    x[:, 0] = 0.0
+    node_mask = np.ones((B, N), bool)
+    node_mask[1, 2:] = False
+    graph = Graph(torch.as_tensor(R), torch.as_tensor(x), torch.as_tensor(node_mask), None)
+    return layer, graph, rng.standard_normal((B, N, 4 * m)), (R, x, node_mask)
+
+
+def test_layer_gradients_match_finite_differences():
+    """The layer cuts its tensors with split and casts nothing in float64: autograd's gradients with respect
+    to the features and to every weight agree with central differences."""
+    layer, graph, f, _ = layer_inputs()
+    f = torch.as_tensor(f).requires_grad_(True)
+    params = tuple(layer.parameters())
+
+    def fn(feat, *weights):
+        named = dict(zip([k for k, _ in layer.named_parameters()], weights))
+        return torch.func.functional_call(layer, named, (feat, graph))
+
+    assert torch.autograd.gradcheck(fn, (f, *[p.detach().clone().requires_grad_(True) for p in params]),
+                                    eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def test_layer_pair_work_runs_in_bf16_under_autocast_and_stays_near_the_reference():
+    """Under bf16 autocast every batched product of the layer (frame rotations of features, pair products) reads
+    bf16 operands, i.e. each is cast once rather than per product; the output stays within bf16 accuracy of
+    the float64 pairwise reference, and the residual stream (LayerNorm output) stays float32."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class BmmDtypes(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.seen = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func in (torch.ops.aten.bmm.default, torch.ops.aten.mm.default, torch.ops.aten.addmm.default):
+                self.seen.append((str(func), tuple(a.dtype for a in args if isinstance(a, torch.Tensor))))
+            return func(*args, **(kwargs or {}))
+
+    layer64, _, f, (R, x, node_mask) = layer_inputs(heads=1, m=4, B=3, N=5)
+    layer = EquivariantGraphormerLayer(4, 1, ffn_dim=6, act="relu")
+    layer.load_state_dict({k: v.float() for k, v in layer64.state_dict().items()})
+    graph = Graph(torch.as_tensor(R).float(), torch.as_tensor(x).float(), torch.as_tensor(node_mask), None)
+    with torch.autocast("cpu", dtype=torch.bfloat16), BmmDtypes() as mode:
+        out = layer(torch.as_tensor(f).float(), graph)
+    assert out.dtype == torch.float32
+    bmms = [d for name, d in mode.seen if "bmm" in name]
+    assert len(bmms) >= 5  # rotations of f and of the keys, logits, values, rotation back
+    assert all(d == (torch.bfloat16, torch.bfloat16) for d in bmms), mode.seen
+    reference = reference_layer(layer64, f, R, x, node_mask, None)
+    error = np.abs(out.detach().double().numpy() - reference).max()
+    assert 1e-5 < error < 0.1, error  # bf16's rounding is visible, and small next to features of size ~1
+
 def test_graph_nodes_from_layout():
     """Node 0 is drone i at the origin with R_i; node 1 + k is neighbour slot k with its own attitude;
     node inputs are velocity and goal offset in the node's own frame, body rates, is-self flag."""
