@@ -57,8 +57,10 @@ def rotate_features(R: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
     return torch.einsum("bnij,bnjc->bnic", R, V)
 
 
-rotate = full_precision(rotate_features)
-rotate.__doc__ = "``rotate_features`` in fp32 even under autocast (``encoders.frames.full_precision``)."
+@full_precision
+def rotate(R: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
+    """``rotate_features`` in fp32 even under autocast (``encoders.frames.full_precision``)."""
+    return rotate_features(R, V)
 
 
 class Graph:
@@ -109,7 +111,7 @@ class EquivariantGraphormerLayer(nn.Module):
         # Under bf16 autocast the pair work below runs in bf16 from one cast of f and of the graph's small
         # tensors (each matmul would cast them again); the residual stream, LayerNorm and softmax stay fp32.
         f_lp = low_precision(f)
-        F, Ft, pose = low_precision(g.F), low_precision(g.Ft), low_precision(g.pose)
+        F, pose = low_precision(g.F), low_precision(g.pose)
         f_s, f_v = f_lp.split([m, 3 * m], dim=-1)  # [B, N, m] scalars, [B, N, 3m] vector block
         # world-frame node data z_p = [s_p | (x_p, R_p, F_p V_p) as a spatial-major vector block]
         vec_world = torch.cat([pose, rotate_features(F, f_v.unflatten(-1, (3, m)))], dim=-1)  # [B, N, 3, C]
@@ -134,8 +136,8 @@ class EquivariantGraphormerLayer(nn.Module):
         agg_s, agg_v = agg.split([m, 3 * C], dim=-1)
         agg_x, agg_rest = agg_v.unflatten(-1, (3, C)).split([1, C - 1], dim=-1)
         agg_vec = torch.cat([agg_x - low_precision(g.x).view(B, N, 1, 3, 1), agg_rest], dim=-1)
-        agg_vec = rotate_features(Ft, agg_vec)  # [B, N, H, 3, C] in v's frame
-        pair = torch.cat([agg_dist.to(agg.dtype), agg_s, agg_vec.flatten(-2)], dim=-1)  # [B, N, H, X]
+        agg_vec = rotate_features(F.transpose(-1, -2), agg_vec)  # [B, N, H, 3, C] in v's frame
+        pair = torch.cat([agg_dist, agg_s, agg_vec.flatten(-2)], dim=-1)  # [B, N, H, X]
         if H == 1:
             attn = self.W_V(pair.squeeze(2))  # [B, N, F]
         else:

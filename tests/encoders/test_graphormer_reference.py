@@ -73,7 +73,6 @@ def test_layer_matches_pairwise_reference(heads, edge_radius):
         assert np.abs(reference_layer(layer, f, R, x, node_mask, None) - slow).max() > 1e-3
 
 
-
 def layer_inputs(heads=2, m=2, B=2, N=4, seed=3):
     torch.manual_seed(seed)
     layer = EquivariantGraphormerLayer(m, heads, ffn_dim=6, act="relu").double()
@@ -108,14 +107,14 @@ def test_layer_pair_work_runs_in_bf16_under_autocast_and_stays_near_the_referenc
     the float64 pairwise reference, and the residual stream (LayerNorm output) stays float32."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    class BmmDtypes(TorchDispatchMode):
+    class BmmDtypes(TorchDispatchMode):  # the operand dtypes of every bmm the layer runs
         def __init__(self):
             super().__init__()
             self.seen = []
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            if func in (torch.ops.aten.bmm.default, torch.ops.aten.mm.default, torch.ops.aten.addmm.default):
-                self.seen.append((str(func), tuple(a.dtype for a in args if isinstance(a, torch.Tensor))))
+            if func is torch.ops.aten.bmm.default:
+                self.seen.append(tuple(a.dtype for a in args))
             return func(*args, **(kwargs or {}))
 
     layer64, _, f, (R, x, node_mask) = layer_inputs(heads=1, m=4, B=3, N=5)
@@ -125,12 +124,12 @@ def test_layer_pair_work_runs_in_bf16_under_autocast_and_stays_near_the_referenc
     with torch.autocast("cpu", dtype=torch.bfloat16), BmmDtypes() as mode:
         out = layer(torch.as_tensor(f).float(), graph)
     assert out.dtype == torch.float32
-    bmms = [d for name, d in mode.seen if "bmm" in name]
-    assert len(bmms) >= 5  # rotations of f and of the keys, logits, values, rotation back
-    assert all(d == (torch.bfloat16, torch.bfloat16) for d in bmms), mode.seen
+    assert len(mode.seen) >= 5  # rotations of f and of the keys, logits, values, rotation back
+    assert all(d == (torch.bfloat16, torch.bfloat16) for d in mode.seen), mode.seen
     reference = reference_layer(layer64, f, R, x, node_mask, None)
     error = np.abs(out.detach().double().numpy() - reference).max()
     assert 1e-5 < error < 0.1, error  # bf16's rounding is visible, and small next to features of size ~1
+
 
 def test_graph_nodes_from_layout():
     """Node 0 is drone i at the origin with R_i; node 1 + k is neighbour slot k with its own attitude;
