@@ -18,6 +18,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Dict, List, Tuple
 
+import numpy as np
+
 from benchmarks.common import RESULTS, load_average, publish, section_header
 from benchmarks.table1 import plot_curves, read_metrics
 
@@ -51,7 +53,9 @@ def read_episodes(paths: List[Path]) -> List[dict]:
 def failure_split(episodes: List[dict]) -> Dict[str, Dict[str, float]]:
     """Per policy: shares of drones that succeeded, collided after the grace period, or stayed clean but ended
     outside the success radius; the reached share (within the radius at some time, no collision: QuadSwarm's
-    success); contact-free episodes."""
+    success); contact-free episodes; and, where the evaluation recorded each drone's final distance
+    (``agent_dist_final``), how far outside the radius the clean failures end: their median final distance and
+    the share of them within 0.6 m (None for older evaluation files)."""
     by_policy: Dict[str, List[dict]] = defaultdict(list)
     for e in episodes:
         by_policy[e["policy"]].append(e)
@@ -60,12 +64,18 @@ def failure_split(episodes: List[dict]) -> Dict[str, Dict[str, float]]:
         flags = [(s, c, r) for e in eps
                  for s, c, r in zip(e["agent_success"], e["agent_collided"], e["agent_reached"])]
         n = len(flags)
+        outside = [d for e in eps if "agent_dist_final" in e
+                   for s, c, d in zip(e["agent_success"], e["agent_collided"], e["agent_dist_final"])
+                   if not s and not c]
+        known = all("agent_dist_final" in e for e in eps) and outside
         out[policy] = {"drones": n, "success": sum(s for s, _, _ in flags) / n,
                        "collided": sum(c for _, c, _ in flags) / n,
                        "clean_outside": sum(not s and not c for s, c, _ in flags) / n,
                        "reached": sum(r for _, _, r in flags) / n,
                        "episodes": len(eps),
-                       "contact_free_episodes": sum(e["collisions_after_grace"] == 0 for e in eps)}
+                       "contact_free_episodes": sum(e["collisions_after_grace"] == 0 for e in eps),
+                       "clean_outside_median_m": float(np.median(outside)) if known else None,
+                       "clean_outside_within_0.6": sum(d <= 0.6 for d in outside) / len(outside) if known else None}
     return out
 
 
@@ -73,11 +83,14 @@ def report(split: Dict[str, Dict[str, float]], figure: Path = None) -> str:
     lines = []
     if split:
         lines += ["| policy | drones | Suc % | collided % | clean, outside 0.5 m at the end % | Reached % | "
-                  "contact-free episodes |", "|---|---:|---:|---:|---:|---:|---:|"]
+                  "contact-free episodes | clean outside: median final distance (m) | of them within 0.6 m % |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for policy, s in split.items():
+            median, near = s["clean_outside_median_m"], s["clean_outside_within_0.6"]
             lines.append(f"| {policy} | {s['drones']} | {100 * s['success']:.1f} | {100 * s['collided']:.1f} | "
                          f"{100 * s['clean_outside']:.1f} | {100 * s['reached']:.1f} | "
-                         f"{s['contact_free_episodes']}/{s['episodes']} |")
+                         f"{s['contact_free_episodes']}/{s['episodes']} | "
+                         + ("- | - |" if median is None else f"{median:.2f} | {100 * near:.1f} |"))
     if figure is not None:
         lines += ["", f"![learning curves]({os.path.relpath(figure, RESULTS.parent)})"]  # as RESULTS.md links it
     return "\n".join(lines)

@@ -228,7 +228,8 @@ class VecQuadEnv:
         ``reached_rate`` (the earlier success: share of drones that reached their goal -- mean distance over
         5 consecutive steps < 0.5 m at some step after the last goal jump -- and had no drone-drone contact
         after the grace period); ``agent_success``, ``agent_reached``, ``agent_collided`` (bool [N]: the same
-        per drone); ``rew_<term>`` (per-term episode reward, mean per agent: they sum
+        per drone); ``agent_dist_final`` (float [N]: each drone's distance to its goal after the last step);
+        ``rew_<term>`` (per-term episode reward, mean per agent: they sum
         to ``return``); ``diverged`` (the episode ended on a non-finite state).
         With obstacles, ``collisions`` and ``collisions_after_grace`` count drone-drone contacts (pairs) plus
         new drone-obstacle contacts (drones): the paper's Col; ``obstacle_collisions`` and
@@ -509,6 +510,8 @@ class VecQuadEnv:
             "agent_reached": reached.copy(),
             "agent_collided": collided.copy(),
             "agent_hit_obstacle": hit_obstacle.copy(),
+            "agent_dist_final": np.linalg.norm(self._pos[e * N:(e + 1) * N].astype(np.float64)
+                                               - self._goal[e * N:(e + 1) * N], axis=1),  # [N]
             "diverged": bool(self._diverged[e]),
             "respawns": int(acc[ACC_RESPAWNS]),
             "replayed": bool(self._replay is not None and self._replay.replayed[e]),

@@ -24,6 +24,20 @@ def test_failure_split_counts_each_drone_once_per_policy():
     assert "| a | 8 | 50.0 | 12.5 | 37.5 | 75.0 | 1/2 |" in qr.report(split)
 
 
+def test_clean_failures_report_how_far_outside_the_radius_they_end():
+    a = _episode("a", [True, False, False, False], [False, True, False, False], [True, False, True, False], 1)
+    a["agent_dist_final"] = [0.2, 0.1, 0.55, 0.9]  # clean failures: drones 2 and 3 (drone 1 collided)
+    b = _episode("a", [False, True], [False, False], [True, True], 0)
+    b["agent_dist_final"] = [0.58, 0.3]  # clean failure: drone 0
+    split = qr.failure_split([a, b])["a"]
+    assert split["clean_outside"] == 3 / 6
+    assert split["clean_outside_median_m"] == pytest.approx(0.58)  # median of 0.55, 0.9, 0.58
+    assert split["clean_outside_within_0.6"] == pytest.approx(2 / 3)
+    assert "| 1/2 | 0.58 | 66.7 |" in qr.report({"a": split})
+    old = qr.failure_split([_episode("c", [False], [False], [False], 0)])["c"]  # an evaluation without distances
+    assert old["clean_outside_median_m"] is None and "| 1/1 | - | - |" in qr.report({"c": old})
+
+
 def test_curves_of_two_runs_and_the_split_in_one_section(tmp_path):
     for name, dist in (("r1", 1.0), ("r2", 0.5)):
         (tmp_path / name).mkdir()

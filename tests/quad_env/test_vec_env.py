@@ -138,6 +138,7 @@ def test_auto_reset_final_obs_and_episode_stats():
             assert st[f"rew_{k}"] == pytest.approx(term_sums[k][rows].sum() / 3, rel=1e-5, abs=1e-9)
         assert sum(st[f"rew_{k}"] for k in REWARD_TERMS) == pytest.approx(st["return"], rel=1e-6)
         assert st["dist_final"] == pytest.approx(dist[rows].mean(), rel=1e-9)
+        np.testing.assert_allclose(st["agent_dist_final"], dist[rows], rtol=1e-12)  # per drone, same state
         assert set(st) >= {"collisions", "room_contacts", "dist_last_5s"}
     with pytest.raises(RuntimeError, match="reset"):
         manual.step(np.zeros((6, 4)))
