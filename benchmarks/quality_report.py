@@ -50,12 +50,15 @@ def read_episodes(paths: List[Path]) -> List[dict]:
     return episodes
 
 
+NEAR_M = 0.6  # "just outside" the 0.5-m success radius: how near the clean failures' misses are
+
+
 def failure_split(episodes: List[dict]) -> Dict[str, Dict[str, float]]:
     """Per policy: shares of drones that succeeded, collided after the grace period, or stayed clean but ended
     outside the success radius; the reached share (within the radius at some time, no collision: QuadSwarm's
     success); contact-free episodes; and, where the evaluation recorded each drone's final distance
     (``agent_dist_final``), how far outside the radius the clean failures end: their median final distance and
-    the share of them within 0.6 m (None for older evaluation files)."""
+    the share of them within 0.6 m (None for older evaluation files, or without clean failures)."""
     by_policy: Dict[str, List[dict]] = defaultdict(list)
     for e in episodes:
         by_policy[e["policy"]].append(e)
@@ -64,18 +67,18 @@ def failure_split(episodes: List[dict]) -> Dict[str, Dict[str, float]]:
         flags = [(s, c, r) for e in eps
                  for s, c, r in zip(e["agent_success"], e["agent_collided"], e["agent_reached"])]
         n = len(flags)
-        outside = [d for e in eps if "agent_dist_final" in e
+        known = all("agent_dist_final" in e for e in eps)  # older evaluation files lack it
+        outside = [d for e in eps if known  # final distances of the clean failures
                    for s, c, d in zip(e["agent_success"], e["agent_collided"], e["agent_dist_final"])
                    if not s and not c]
-        known = all("agent_dist_final" in e for e in eps) and outside
         out[policy] = {"drones": n, "success": sum(s for s, _, _ in flags) / n,
                        "collided": sum(c for _, c, _ in flags) / n,
                        "clean_outside": sum(not s and not c for s, c, _ in flags) / n,
                        "reached": sum(r for _, _, r in flags) / n,
                        "episodes": len(eps),
                        "contact_free_episodes": sum(e["collisions_after_grace"] == 0 for e in eps),
-                       "clean_outside_median_m": float(np.median(outside)) if known else None,
-                       "clean_outside_within_0.6": sum(d <= 0.6 for d in outside) / len(outside) if known else None}
+                       "clean_outside_median_m": float(np.median(outside)) if outside else None,
+                       "clean_outside_within_0.6": float(np.mean(np.asarray(outside) <= NEAR_M)) if outside else None}
     return out
 
 

@@ -480,7 +480,8 @@ class VecQuadEnv:
         """Stats of swarm ``e``'s episode so far (the dict ``pop_episode_stats`` returns at its end; mid-episode,
         success looks at the last 1 s so far)."""
         acc, N = self._acc[e], self.num_agents
-        agents = self._agent_acc[e * N:(e + 1) * N]
+        rows = slice(e * N, (e + 1) * N)  # swarm e's drones
+        agents = self._agent_acc[rows]
         collided = agents[:, AG_COLL_GRACE] > 0  # [N] drone-drone
         hit_obstacle = agents[:, AG_OBST_GRACE] > 0  # [N]
         clean = ~collided & ~hit_obstacle  # [N]
@@ -510,8 +511,7 @@ class VecQuadEnv:
             "agent_reached": reached.copy(),
             "agent_collided": collided.copy(),
             "agent_hit_obstacle": hit_obstacle.copy(),
-            "agent_dist_final": np.linalg.norm(self._pos[e * N:(e + 1) * N].astype(np.float64)
-                                               - self._goal[e * N:(e + 1) * N], axis=1),  # [N]
+            "agent_dist_final": np.linalg.norm(self._pos[rows].astype(np.float64) - self._goal[rows], axis=1),  # [N]
             "diverged": bool(self._diverged[e]),
             "respawns": int(acc[ACC_RESPAWNS]),
             "replayed": bool(self._replay is not None and self._replay.replayed[e]),
