@@ -16,7 +16,7 @@ COLLISION_FORMS = ("paper", "pairwise")
 # The reward terms: the one list. Order of the kernels' ``terms`` rows (``quad_env.params.T_*``), of
 # ``VecQuadEnv.reward_terms`` and of the accumulator columns; a term's coefficient is the RewardConfig field of
 # its name. The kernel writes all but "crash", which VecQuadEnv adds (floor contacts) and must stay last.
-REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "crash")
+REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "goal", "crash")
 
 
 @dataclass
@@ -50,6 +50,12 @@ class RewardConfig:
     tilt: float = 0.0
     """Shaping, not in the paper (0 = the paper's reward): weight of -(1 - cos tilt) = -(1 - R_zz), the
     tilt of the drone's thrust axis from vertical (times dt)."""
+    goal: float = 0.0
+    """Shaping, not in the paper (0 = the paper's reward): bonus per step (times dt) while a drone is within
+    ``goal_radius`` of its goal. The paper's c1 pulls with the same force at every distance, so nothing in its
+    reward asks for the success radius (README, "The quality goal")."""
+    goal_radius: float = 0.5
+    """Radius of the ``goal`` bonus, m (default: the success radius of the Suc metric)."""
     crash: float = 0.0
     """Shaping, not in the paper (0 = the paper's reward): penalty per new floor contact (not times dt);
     the cost of a crash when ``env.respawn_on_floor`` puts the drone straight back in the air."""
@@ -272,6 +278,8 @@ class EnvConfig:
                              f"got {self.reward.collision_form!r}")
         if not self.reward.proximity_dist > 0:
             raise ValueError(f"env.reward.proximity_dist must be > 0, got {self.reward.proximity_dist!r}")
+        if not 0 < self.reward.goal_radius < float("inf"):
+            raise ValueError(f"env.reward.goal_radius must be a finite number > 0, got {self.reward.goal_radius!r}")
         self.physics.validate()
         return self
 

@@ -45,16 +45,16 @@ import numpy as np
 
 from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.params import (
-    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK,
+    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_GOAL, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST, F_COLL_KICK,
     F_COLL_REST,
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
-    I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
+    F_GOAL_R, I_FULL_NB, I_GRACE_STEPS, I_K, I_N, I_NB_DIM, I_OBS_DIM, I_REORTHO, I_SENSOR_NOISE, I_SUBSTEPS,
     I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
     COLL_FORM_PAPER, I_COLL_FORM,
     F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
-    REWARD_TERMS, SDF_SPACING, T_ACTION, T_COLLISION, T_FLOOR, T_OMEGA, T_POS, T_PROXIMITY, T_TILT,
+    REWARD_TERMS, SDF_SPACING, T_ACTION, T_COLLISION, T_FLOOR, T_GOAL, T_OMEGA, T_POS, T_PROXIMITY, T_TILT,
 )
 
 from quad_env.rng import normal_from, normal_pair, uniform
@@ -631,11 +631,11 @@ def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
 def reward_coefficients(fp, ip):
     """The reward's per-step weights (times the control dt where the term is per step), read once per swarm:
     (c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, d_p, proximity over the observed
-    neighbours only)."""
+    neighbours only, c_goal, goal radius)."""
     dt = fp[F_CTRL_DT]
     return (fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt, fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt,
             fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z], fp[F_C_OBST], fp[F_PROX_DIST],
-            ip[I_COLL_FORM] == COLL_FORM_PAPER)
+            ip[I_COLL_FORM] == COLL_FORM_PAPER, fp[F_C_GOAL] * dt, fp[F_GOAL_R])
 
 
 @njit(cache=True, inline="always")
@@ -648,7 +648,7 @@ def reward_terms(dist, z, wx, wy, wz, u0, u1, u2, u3, r_zz, coll_pen, new_obst, 
     arguments would cost reference counting per drone.
     A new term: its name in ``REWARD_TERMS``, its formula here, its weight in ``reward_coefficients``, its float64
     twin in ``quad_env.reference``, its coefficient in ``RewardConfig`` (packed by ``pack_params``)."""
-    c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, dp, prox_nb = coef
+    c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, dp, prox_nb, c_goal, goal_r = coef
     u0 = min(max(u0, -1.0), 1.0)
     u1 = min(max(u1, -1.0), 1.0)
     u2 = min(max(u2, -1.0), 1.0)
@@ -660,7 +660,8 @@ def reward_terms(dist, z, wx, wy, wz, u0, u1, u2, u3, r_zz, coll_pen, new_obst, 
     r_act = -c_act * np.sqrt(u0 * u0 + u1 * u1 + u2 * u2 + u3 * u3)
     r_floor = -c_floor if z <= floor_z else 0.0
     r_tilt = -c_tilt * (1.0 - r_zz)
-    return r_pos, r_coll, r_prox, r_omega, r_act, r_floor, r_tilt
+    r_goal = c_goal if dist < goal_r else 0.0
+    return r_pos, r_coll, r_prox, r_omega, r_act, r_floor, r_tilt, r_goal
 
 
 @njit(cache=True)
@@ -796,7 +797,8 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
                              coll_pen[a], new_obst[a], prox[a], near, coef)
             terms[T_POS, i], terms[T_COLLISION, i], terms[T_PROXIMITY, i] = r[0], r[1], r[2]
             terms[T_OMEGA, i], terms[T_ACTION, i], terms[T_FLOOR, i], terms[T_TILT, i] = r[3], r[4], r[5], r[6]
-            rew[i] = r[0] + r[1] + r[2] + r[3] + r[4] + r[5] + r[6]  # (this order: bit-reproducible)
+            terms[T_GOAL, i] = r[7]
+            rew[i] = r[0] + r[1] + r[2] + r[3] + r[4] + r[5] + r[6] + r[7]  # (this order: bit-reproducible)
     return dist_sum / n_agents
 
 

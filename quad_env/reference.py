@@ -247,6 +247,7 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
         "action": -rc.action * ctrl_dt * np.linalg.norm(u, axis=1),
         "floor": -rc.floor * ctrl_dt * (pos[:, 2] <= p.floor_z),
         "tilt": -rc.tilt * ctrl_dt * (1.0 - rot[:, 2, 2]),
+        "goal": rc.goal * ctrl_dt * (np.linalg.norm(pos - goal, axis=1) < rc.goal_radius),
     }
     terms = np.stack([formulas[name] for name in REWARD_TERMS[:KERNEL_TERMS]])
     new_state = dict(pos=pos, vel=vel, rot=rot, omega=omega, motor=motor, goal=goal)

@@ -36,7 +36,7 @@ import numpy as np
 from quad_env.params import REWARD_TERMS
 
 PAPER_REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action")  # the paper's c1..c5
-SHAPING_REWARD_TERMS = tuple(t for t in REWARD_TERMS if t not in PAPER_REWARD_TERMS)  # floor, tilt, crash
+SHAPING_REWARD_TERMS = tuple(t for t in REWARD_TERMS if t not in PAPER_REWARD_TERMS)  # floor, tilt, goal, crash
 
 
 @dataclass(frozen=True)

@@ -72,6 +72,34 @@ def test_floor_and_tilt_shaping_terms(quiet_cfg):
     np.testing.assert_allclose(t["tilt"], [0.0, 0.0, -0.7 * DT * (1 - c)], rtol=1e-5, atol=1e-9)
 
 
+@pytest.mark.parametrize("radius", [0.5, 1.2])
+def test_goal_bonus_inside_its_radius_only(quiet_cfg, radius):
+    """Three hovering drones 0.3, 0.7 and 1.5 m from their goals: the bonus c dt goes to those strictly inside
+    ``goal_radius``; off by default (the paper's reward)."""
+    pos = np.array([[0, 0, 2.0], [2, 0, 2.0], [0, 2, 2.0]])
+    goal = pos + np.array([[0.3, 0, 0], [0, 0.7, 0], [0, 0, 1.5]])
+    hover = 1 / 1.9
+
+    def goal_term(**reward):
+        env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0, drag_coeff=0.0, reward=reward), num_envs=1, seed=0)
+        env.set_state(pos=pos, vel=np.zeros((3, 3)), rot=np.tile(np.eye(3), (3, 1, 1)), omega=np.zeros((3, 3)),
+                      motor=np.full((3, 4), np.sqrt(hover)), goal=goal)
+        _, rew, _, _ = env.step(np.full((3, 4), 2 * hover - 1))
+        np.testing.assert_allclose(rew, sum(env.reward_terms[k] for k in REWARD_TERMS), rtol=1e-6)
+        return env.reward_terms["goal"]
+
+    inside = np.array([0.3, 0.7, 1.5]) < radius  # one hover step moves a drone by < 1e-3 m
+    np.testing.assert_allclose(goal_term(goal=2.0, goal_radius=radius), 2.0 * DT * inside, rtol=1e-6)
+    assert (goal_term() == 0).all()
+
+
+def test_goal_radius_must_be_positive(quiet_cfg):
+    with pytest.raises(ValueError, match="env.reward.goal_radius"):
+        quiet_cfg(reward=dict(goal=1.0, goal_radius=0.0)).validate()
+    with pytest.raises(ValueError, match="env.reward.goal must be >= 0"):
+        quiet_cfg(reward=dict(goal=-1.0)).validate()
+
+
 def approach(quiet_cfg, restitution, steps=30):
     """Two hovering drones 0.3 m apart flying at each other at 0.5 m/s each; returns the collision terms."""
     cfg = quiet_cfg(num_agents=2, num_neighbors=1, drag_coeff=0.0,
