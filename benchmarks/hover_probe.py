@@ -13,6 +13,12 @@ velocity and attitude from ``VecQuadEnv.get_state``:
   (a steady bias of the policy in its frame shows here whatever the drone's heading);
 - yaw turned: |heading change| over the window; speed; path: the distance flown in the window; net move: the
   distance between the window's first and last positions (path >> net move: the drone circles);
+- swarm centre: the swarm's common offset c = mean over its drones of the window-mean offset x - x^d (median |c|
+  over swarms), and the spread: each drone's distance from its goal shifted by c (median |x - x^d - c|); within
+  0.5 m: the share of drones whose window-mean offset is shorter than 0.5 m as flown, and if the swarm were shifted
+  by -c (a swarm whose drones ring their shared goal at 0.35 m but whose centre sits 0.2 m off it loses the far side
+  of the ring to Suc's radius, while the paper's c1 summed over the swarm hardly changes: the mean distance of a
+  ring of radius r from a point c off its centre grows only as c^2 / 4r for c in the ring's plane);
 - Suc: the environment's success (within 0.5 m during the whole last second, no collision).
 
 A measurement, not a timing: it may run while other work shares the cores.
@@ -29,10 +35,18 @@ from benchmarks.collision_anatomy import checked_checkpoints
 from benchmarks.common import load_average, publish, section_header
 
 
-def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndarray, dt: float) -> Dict[str, float]:
+def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndarray, dt: float,
+                num_agents: Optional[int] = None) -> Dict[str, float]:
     """Statistics of a window of T control steps for M drones: ``pos``, ``goal``, ``vel`` [T, M, 3], ``rot``
-    [T, M, 3, 3] (body -> world), ``dt`` the control step (s). Medians over drones unless named a mean."""
+    [T, M, 3, 3] (body -> world), ``dt`` the control step (s); ``num_agents``: drones per swarm (M = swarms x N,
+    swarm by swarm; default: one swarm of M). Medians over drones unless named a mean."""
     off = pos - goal  # [T, M, 3] world
+    n = off.shape[1] if num_agents is None else num_agents
+    if off.shape[1] % n:
+        raise ValueError(f"{off.shape[1]} drones are not whole swarms of {n}")
+    mean_off = off.mean(0).reshape(-1, n, 3)  # [E, N, 3] each drone's window-mean offset, by swarm
+    centre = mean_off.mean(1, keepdims=True)  # [E, 1, 3] the swarm's common offset
+    about = np.linalg.norm(mean_off - centre, axis=-1)  # [E, N]
     body = np.einsum("tmji,tmj->tmi", rot, off)  # R^T off: [T, M, 3] in the drone's axes
     yaw = np.unwrap(np.arctan2(rot[..., 1, 0], rot[..., 0, 0]), axis=0)  # [T, M] heading of the body x axis
     path = np.linalg.norm(np.diff(pos, axis=0), axis=-1).sum(0)  # [M]
@@ -45,6 +59,10 @@ def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndar
         "path": float(np.median(path)),
         "net_move": float(np.median(np.linalg.norm(pos[-1] - pos[0], axis=-1))),
         "window_s": float((pos.shape[0] - 1) * dt),
+        "centre_offset": float(np.median(np.linalg.norm(centre[:, 0], axis=-1))),
+        "spread": float(np.median(about)),
+        "within_pct": float(100.0 * np.mean(np.linalg.norm(mean_off, axis=-1) < 0.5)),
+        "within_centred_pct": float(100.0 * np.mean(about < 0.5)),
     }
 
 
@@ -72,7 +90,7 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
             break
     episode_stats = env.pop_episode_stats()
     stack = lambda k: np.stack([getattr(s, k) for s in frames])  # noqa: E731
-    out = hover_stats(stack("pos"), stack("goal"), stack("rot"), stack("vel"), dt)
+    out = hover_stats(stack("pos"), stack("goal"), stack("rot"), stack("vel"), dt, env_cfg.num_agents)
     out.update({"run": loaded.run_name, "agent_steps": loaded.agent_steps, "scenario": env_cfg.scenario,
                 "N": env_cfg.num_agents, "episodes": episodes, "seed": seed,
                 "success_pct": 100.0 * float(np.mean([st["success_rate"] for st in episode_stats]))})
@@ -81,14 +99,16 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
 
 def table(results: List[Tuple[str, Dict]]) -> str:
     lines = ["| run | scenario, N, episodes, seed | window (s) | Dist (m) | body offset x, y, z (m) | "
-             "per-drone body offset (m) | yaw turned (deg) | speed (m/s) | path (m) | net move (m) | Suc % |",
-             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+             "per-drone body offset (m) | yaw turned (deg) | speed (m/s) | path (m) | net move (m) | "
+             "swarm centre offset (m) | spread about it (m) | within 0.5 m %: as flown / centred | Suc % |",
+             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for label, r in results:
         bx, by, bz = r["body_offset"]
         lines.append(f"| {label} | {r['scenario']}, {r['N']}, {r['episodes']}, {r['seed']} | {r['window_s']:.1f} | "
                      f"{r['dist']:.2f} | {bx:+.2f}, {by:+.2f}, {bz:+.2f} | {r['body_offset_norm']:.2f} | "
                      f"{r['yaw_turned_deg']:.0f} | {r['speed']:.2f} | {r['path']:.2f} | {r['net_move']:.2f} | "
-                     f"{r['success_pct']:.1f} |")
+                     f"{r['centre_offset']:.2f} | {r['spread']:.2f} | {r['within_pct']:.0f} / "
+                     f"{r['within_centred_pct']:.0f} | {r['success_pct']:.1f} |")
     return "\n".join(lines)
 
 

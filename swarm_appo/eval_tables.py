@@ -55,13 +55,15 @@ class Metric:
     minus: Tuple[str, ...] = ()  # keys subtracted
     markdown: str = "always"  # in the Markdown table: "always", "nonzero" (when some row is not 0) or "never"
     optional: bool = False  # computed only when every episode has the stats (else the column is left out)
+    zero_if_absent: Tuple[str, ...] = ()  # stats that count 0 in episodes written before they existed
 
     def value(self, episode: dict) -> float:
         """The metric of one episode, unscaled (Suc as a share)."""
-        return sum(float(episode[k]) for k in self.stats) - sum(float(episode[k]) for k in self.minus)
+        get = lambda k: float(episode.get(k, 0.0) if k in self.zero_if_absent else episode[k])  # noqa: E731
+        return sum(get(k) for k in self.stats) - sum(get(k) for k in self.minus)
 
     def available(self, episode: dict) -> bool:
-        return all(k in episode for k in self.stats + self.minus)
+        return all(k in episode or k in self.zero_if_absent for k in self.stats + self.minus)
 
 
 METRICS: Dict[str, Metric] = {
@@ -70,7 +72,8 @@ METRICS: Dict[str, Metric] = {
                   "action)"),
     "shaping": Metric("Shaping", "reward_shaping", tuple(f"rew_{t}" for t in SHAPING_REWARD_TERMS), 1.0, 2, True,
                       "reward_shaping", "per-agent episode sum of the training-only shaping terms (floor, tilt, "
-                      "crash), not in Rew", markdown="nonzero"),
+                      "goal, crash), not in Rew", markdown="nonzero",
+                      zero_if_absent=("rew_goal",)),  # the goal term came after the first evaluation files
     "dist": Metric("Dist", "dist", ("dist_last_5s",), 1.0, 2, False, "dist",
                    "Dist: mean distance of a drone to its goal over the last 5 s of the episode (m)"),
     "dist_final": Metric("Dist end", "dist_final", ("dist_final",), 1.0, 2, False, "dist_final",

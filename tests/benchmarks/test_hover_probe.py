@@ -43,14 +43,34 @@ def test_drones_holding_still_at_world_offsets_have_no_common_body_offset():
     assert (s["yaw_turned_deg"], s["speed"], s["path"], s["net_move"]) == (0.0, 0.0, 0.0, 0.0)
 
 
+def test_a_ring_whose_centre_is_off_the_shared_goal():
+    """Two swarms of 4 drones holding still on a 0.35-m ring around their shared goal, swarm 0's ring shifted 0.2 m
+    east: its east drone ends 0.55 m out (outside 0.5 m as flown, inside once the swarm is centred)."""
+    ring = np.array([[0.35, 0, 0], [0, 0.35, 0], [-0.35, 0, 0], [0, -0.35, 0]])
+    T, goal0 = 5, np.array([1.0, 2.0, 2.0])
+    off = np.concatenate([ring + [0.2, 0.0, 0.0], ring])  # [8, 3]: swarm 0, then swarm 1
+    pos = np.tile(goal0 + off, (T, 1, 1))
+    goal = np.tile(goal0, (T, 8, 1))
+    rot = np.tile(np.eye(3), (T, 8, 1, 1))
+    s = hover_stats(pos, goal, rot, np.zeros((T, 8, 3)), 0.01, num_agents=4)
+    assert s["centre_offset"] == pytest.approx(0.1)  # the median of 0.2 and 0
+    assert s["spread"] == pytest.approx(0.35)
+    assert s["within_pct"] == pytest.approx(100 * 7 / 8) and s["within_centred_pct"] == 100.0
+    one_swarm = hover_stats(pos, goal, rot, np.zeros((T, 8, 3)), 0.01)  # all 8 as one swarm: centre 0.1 m east
+    assert one_swarm["centre_offset"] == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="8 drones are not whole swarms of 3"):
+        hover_stats(pos, goal, rot, np.zeros((T, 8, 3)), 0.01, num_agents=3)
+
+
 def test_table_has_a_row_per_result_and_a_cell_per_column():
     r = {"scenario": "static_diff_goal", "N": 8, "episodes": 10, "seed": 7, "window_s": 3.0, "dist": 0.55,
          "body_offset": [0.11, 0.57, -0.05], "body_offset_norm": 0.58, "yaw_turned_deg": 96.4, "speed": 0.33,
-         "path": 0.97, "net_move": 0.45, "success_pct": 6.0}
+         "path": 0.97, "net_move": 0.45, "centre_offset": 0.21, "spread": 0.36, "within_pct": 62.5,
+         "within_centred_pct": 98.75, "success_pct": 6.0}
     lines = table([("se3", r), ("none", dict(r, body_offset=[0.0, -0.01, 0.0]))]).splitlines()
     assert len(lines) == 4 and all(len(line.split("|")) == len(lines[0].split("|")) for line in lines)
     assert lines[2] == ("| se3 | static_diff_goal, 8, 10, 7 | 3.0 | 0.55 | +0.11, +0.57, -0.05 | 0.58 | 96 | 0.33 | "
-                        "0.97 | 0.45 | 6.0 |")
+                        "0.97 | 0.45 | 0.21 | 0.36 | 62 / 99 | 6.0 |")
     assert lines[3].startswith("| none |") and "+0.00, -0.01, +0.00" in lines[3]
 
 

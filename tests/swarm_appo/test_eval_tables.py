@@ -115,6 +115,18 @@ def test_rew_is_the_paper_terms_and_the_shaping_terms_are_reported_apart():
     assert not set(PAPER_REWARD_TERMS) & set(SHAPING_REWARD_TERMS)
 
 
+def test_the_goal_bonus_is_shaping_and_older_episodes_without_it_count_zero():
+    with_goal = dict(episode(-3.0, 1.0, 0, 0.0, 0.0, shaping=-1.0), rew_goal=2.5)
+    older = episode(-3.0, 1.0, 0, 0.0, 0.0, shaping=-1.0)  # written before the goal term existed
+    assert "rew_goal" not in older
+    (row,) = table1_rows([EpisodeGroup("p", 8, "s", [with_goal, older])])
+    assert row.values["shaping"] == (0.25, 1.25)  # episodes: -1 + 2.5 and -1 + 0
+    assert row.values["rew"] == (-3.0, 0.0)
+    del older["rew_floor"]  # a term that always existed stays required
+    with pytest.raises(KeyError, match="rew_floor"):
+        table1_rows([EpisodeGroup("p", 8, "s", [older])])
+
+
 def test_col_counts_room_and_obstacle_contacts_and_cold_drone_pairs_only():
     # 3 contacts after the grace: 2 drone-drone pairs + 1 obstacle; plus 2 room contacts -> Col 5, ColD 2
     eps = [episode(-1.0, 1.0, 3, 0.0, 0.25, room=2, obstacle=1), episode(-1.0, 1.0, 1, 0.0, 0.0, room=0, obstacle=1)]
