@@ -33,6 +33,7 @@ import numpy as np
 
 from benchmarks.collision_anatomy import checked_checkpoints
 from benchmarks.common import load_average, publish, section_header
+from quad_env.kernels import SUCCESS_RADIUS
 
 
 def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndarray, dt: float,
@@ -61,8 +62,8 @@ def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndar
         "window_s": float((pos.shape[0] - 1) * dt),
         "centre_offset": float(np.median(np.linalg.norm(centre[:, 0], axis=-1))),
         "spread": float(np.median(about)),
-        "within_pct": float(100.0 * np.mean(np.linalg.norm(mean_off, axis=-1) < 0.5)),
-        "within_centred_pct": float(100.0 * np.mean(about < 0.5)),
+        "within_pct": float(100.0 * np.mean(np.linalg.norm(mean_off, axis=-1) < SUCCESS_RADIUS)),
+        "within_centred_pct": float(100.0 * np.mean(about < SUCCESS_RADIUS)),
     }
 
 
@@ -100,7 +101,8 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
 def table(results: List[Tuple[str, Dict]]) -> str:
     lines = ["| run | scenario, N, episodes, seed | window (s) | Dist (m) | body offset x, y, z (m) | "
              "per-drone body offset (m) | yaw turned (deg) | speed (m/s) | path (m) | net move (m) | "
-             "swarm centre offset (m) | spread about it (m) | within 0.5 m %: as flown / centred | Suc % |",
+             f"swarm centre offset (m) | spread about it (m) | within {SUCCESS_RADIUS:g} m %: as flown / centred | "
+             "Suc % |",
              "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for label, r in results:
         bx, by, bz = r["body_offset"]
