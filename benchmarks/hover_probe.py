@@ -2,10 +2,11 @@
 circles (the Graphormer `se3` rows' low success on `mix`, RESULTS.md notes of 2026-12-05).
 
     python -m benchmarks.hover_probe --checkpoint se3=RUN --checkpoint none=RUN [--scenario static_diff_goal]
-                                     [--num-agents 1] [--episodes 10] [--window 3] [--append]
+                                     [--num-agents 1] [--episodes 10] [--window 3] [--stochastic] [--append]
 
 Flies each checkpoint in its evaluation environment (``swarm_appo.evaluation.evaluation_env``: no training aids,
-mean actions, the ``swarm_appo.evaluate`` seed by default; ``--num-agents`` replaces N, e.g. 1 for a drone
+mean actions unless ``--stochastic`` (then sampled, as in training), the ``swarm_appo.evaluate`` seed by
+default; ``--num-agents`` replaces N, e.g. 1 for a drone
 without neighbours) and, over the last ``--window`` seconds of every episode, reads each drone's position,
 velocity and attitude from ``VecQuadEnv.get_state``:
 
@@ -18,7 +19,8 @@ velocity and attitude from ``VecQuadEnv.get_state``:
   0.5 m: the share of drones whose window-mean offset is shorter than 0.5 m as flown, and if the swarm were shifted
   by -c (a swarm whose drones ring their shared goal at 0.35 m but whose centre sits 0.2 m off it loses the far side
   of the ring to Suc's radius, while the paper's c1 summed over the swarm hardly changes: the mean distance of a
-  ring of radius r from a point c off its centre grows only as c^2 / 4r for c in the ring's plane);
+  ring of radius r from a point c off its centre grows only as c^2 / 4r for c in the ring's plane); c split
+  into its vertical part c_z (world z, signed: + above the goal; median over swarms) and its horizontal length;
 - Suc: the environment's success (within 0.5 m during the whole last second, no collision).
 
 A measurement, not a timing: it may run while other work shares the cores.
@@ -61,6 +63,8 @@ def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndar
         "net_move": float(np.median(np.linalg.norm(pos[-1] - pos[0], axis=-1))),
         "window_s": float((pos.shape[0] - 1) * dt),
         "centre_offset": float(np.median(np.linalg.norm(centre[:, 0], axis=-1))),
+        "centre_vertical": float(np.median(centre[:, 0, 2])),  # signed: + above the goal
+        "centre_horizontal": float(np.median(np.linalg.norm(centre[:, 0, :2], axis=-1))),
         "spread": float(np.median(about)),
         "within_pct": float(100.0 * np.mean(np.linalg.norm(mean_off, axis=-1) < SUCCESS_RADIUS)),
         "within_centred_pct": float(100.0 * np.mean(about < SUCCESS_RADIUS)),
@@ -68,14 +72,17 @@ def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndar
 
 
 def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int] = None,
-          scenario: Optional[str] = None, num_agents: Optional[int] = None) -> Dict:
-    """Fly ``loaded`` (``swarm_appo.evaluation.load_checkpoint_policy``) and measure the window (module docstring)."""
+          scenario: Optional[str] = None, num_agents: Optional[int] = None, stochastic: bool = False) -> Dict:
+    """Fly ``loaded`` (``swarm_appo.evaluation.load_checkpoint_policy``) and measure the window (module docstring);
+    ``stochastic``: sampled actions (a generator seeded with the episode seed) instead of the mean action."""
+    import torch
+
     from quad_env import VecQuadEnv
     from swarm_appo.evaluation import default_eval_seed, evaluation_env, model_policy
 
     env_cfg = evaluation_env(loaded.cfg.env, num_agents=num_agents, scenario=scenario)
     seed = default_eval_seed(loaded.cfg.runner.seed) if seed is None else seed
-    policy = model_policy(loaded.model)
+    policy = model_policy(loaded.model, not stochastic, torch.Generator().manual_seed(seed))
     steps, dt = env_cfg.episode_steps, env_cfg.control_dt
     first = steps - int(round(window_s / dt))  # the window: steps first..steps (its first state included)
     if first < 0:
@@ -93,7 +100,7 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
     stack = lambda k: np.stack([getattr(s, k) for s in frames])  # noqa: E731
     out = hover_stats(stack("pos"), stack("goal"), stack("rot"), stack("vel"), dt, env_cfg.num_agents)
     out.update({"run": loaded.run_name, "agent_steps": loaded.agent_steps, "scenario": env_cfg.scenario,
-                "N": env_cfg.num_agents, "episodes": episodes, "seed": seed,
+                "N": env_cfg.num_agents, "episodes": episodes, "seed": seed, "stochastic": stochastic,
                 "success_pct": 100.0 * float(np.mean([st["success_rate"] for st in episode_stats]))})
     return out
 
@@ -101,15 +108,18 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
 def table(results: List[Tuple[str, Dict]]) -> str:
     lines = ["| run | scenario, N, episodes, seed | window (s) | Dist (m) | body offset x, y, z (m) | "
              "per-drone body offset (m) | yaw turned (deg) | speed (m/s) | path (m) | net move (m) | "
-             f"swarm centre offset (m) | spread about it (m) | within {SUCCESS_RADIUS:g} m %: as flown / centred | "
-             "Suc % |",
-             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "swarm centre offset (m) | of it: vertical, horizontal (m) | spread about it (m) | "
+             f"within {SUCCESS_RADIUS:g} m %: as flown / centred | Suc % |",
+             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
     for label, r in results:
         bx, by, bz = r["body_offset"]
-        lines.append(f"| {label} | {r['scenario']}, {r['N']}, {r['episodes']}, {r['seed']} | {r['window_s']:.1f} | "
+        actions = ", sampled actions" if r.get("stochastic") else ""
+        lines.append(f"| {label} | {r['scenario']}, {r['N']}, {r['episodes']}, {r['seed']}{actions} | "
+                     f"{r['window_s']:.1f} | "
                      f"{r['dist']:.2f} | {bx:+.2f}, {by:+.2f}, {bz:+.2f} | {r['body_offset_norm']:.2f} | "
                      f"{r['yaw_turned_deg']:.0f} | {r['speed']:.2f} | {r['path']:.2f} | {r['net_move']:.2f} | "
-                     f"{r['centre_offset']:.2f} | {r['spread']:.2f} | {r['within_pct']:.0f} / "
+                     f"{r['centre_offset']:.2f} | {r['centre_vertical']:+.2f}, {r['centre_horizontal']:.2f} | "
+                     f"{r['spread']:.2f} | {r['within_pct']:.0f} / "
                      f"{r['within_centred_pct']:.0f} | {r['success_pct']:.1f} |")
     return "\n".join(lines)
 
@@ -126,6 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=10, help="swarm episodes per row, flown in parallel")
     p.add_argument("--window", type=float, default=3.0, help="the last seconds of each episode that are measured")
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: swarm_appo.evaluate's)")
+    p.add_argument("--stochastic", action="store_true",
+                   help="sample actions as in training (seeded) instead of the mean action")
     p.add_argument("--append", action="store_true", help="append the table to benchmarks/RESULTS.md")
     return p
 
@@ -153,7 +165,8 @@ def main(argv=None) -> List[Tuple[str, Dict]]:
     for scenario in args.scenario or [None]:
         for n in args.num_agents or [None]:
             for label, loaded in policies:
-                results.append((label, probe(loaded, args.episodes, args.window, args.seed, scenario, n)))
+                results.append((label, probe(loaded, args.episodes, args.window, args.seed, scenario, n,
+                                                     args.stochastic)))
     header = section_header("hover_probe", started, argv, ["quad_env", "swarm_appo", "encoders"], load_before)
     publish("\n".join(header + ["", table(results)]), args.append)
     return results

@@ -24,6 +24,10 @@ CURVE_KEYS = ("global_step", "swarm/success_rate", "swarm/collisions_drone", "sw
 RECIPE_RUNNER_KEYS = ("seed", "serial", "num_workers", "envs_per_worker", "max_fragments_in_flight",
                       "total_agent_steps", "precision", "inference_precision", "init_checkpoint")
 RECIPE_SECTIONS = ("env", "model", "algo")
+# recipe keys added after runs were archived, with the value every run before them had in effect: an archived
+# config without one of them counts as having this value (the goal bonus did not exist: it paid 0, and its radius
+# then changed nothing). Add a key here only if its value below reproduces the runs written before it existed.
+KEYS_ADDED_LATER = {"env.reward.goal": 0.0, "env.reward.goal_radius": 0.5}
 EVAL_FILE = "episodes.jsonl"
 
 
@@ -86,7 +90,10 @@ def archive_run(rd: Path, dest: Path, eval_dir: str) -> bool:
 
 
 def recipe_differences(planned: Mapping[str, Any], archived: Mapping[str, Any]) -> List[str]:
-    """Dotted keys whose values differ between two resolved configs (``config_to_dict`` form), recipe keys only."""
+    """Dotted keys whose values differ between two resolved configs (``config_to_dict`` form), recipe keys only;
+    a config (either) lacking a key of ``KEYS_ADDED_LATER`` counts as holding its value there."""
+    planned, archived = _with_keys_added_later(planned), _with_keys_added_later(archived)
+
     def walk(a: Any, b: Any, prefix: str) -> List[str]:
         if isinstance(a, Mapping) and isinstance(b, Mapping):
             return [d for k in sorted(set(a) | set(b)) for d in walk(a.get(k), b.get(k), f"{prefix}.{k}")]
@@ -97,6 +104,25 @@ def recipe_differences(planned: Mapping[str, Any], archived: Mapping[str, Any]) 
     diffs = [d for s in RECIPE_SECTIONS for d in walk(planned.get(s, {}), archived.get(s, {}), s)]
     pr, ar = planned.get("runner", {}), archived.get("runner", {})
     return diffs + [f"runner.{k}" for k in RECIPE_RUNNER_KEYS if pr.get(k) != ar.get(k)]
+
+
+def _with_keys_added_later(config: Mapping[str, Any]) -> Mapping[str, Any]:
+    """``config`` with every key of ``KEYS_ADDED_LATER`` it lacks set to that value (a copy where one is added)."""
+    out = config
+    for dotted, value in KEYS_ADDED_LATER.items():
+        *parents, leaf = dotted.split(".")
+        node = out
+        for k in parents:
+            node = node.get(k) if isinstance(node, Mapping) else None
+        if not isinstance(node, Mapping) or leaf in node:
+            continue  # the key is there (compared as it is), or its section is missing altogether
+        if out is config:
+            out = json.loads(json.dumps(config))
+        node = out
+        for k in parents:
+            node = node[k]
+        node[leaf] = value
+    return out
 
 
 def _recipe_error(src: Path, rd: Path, planned: Mapping[str, Any]) -> Optional[str]:

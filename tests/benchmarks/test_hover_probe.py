@@ -49,15 +49,19 @@ def test_a_ring_whose_centre_is_off_the_shared_goal():
     ring = np.array([[0.35, 0, 0], [0, 0.35, 0], [-0.35, 0, 0], [0, -0.35, 0]])
     T, goal0 = 5, np.array([1.0, 2.0, 2.0])
     off = np.concatenate([ring + [0.2, 0.0, 0.0], ring])  # [8, 3]: swarm 0, then swarm 1
+    off[4:, 2] -= 0.3  # swarm 1's ring 0.3 m below the goal: inside 0.5 m as flown (0.46 m), centred too
     pos = np.tile(goal0 + off, (T, 1, 1))
     goal = np.tile(goal0, (T, 8, 1))
     rot = np.tile(np.eye(3), (T, 8, 1, 1))
     s = hover_stats(pos, goal, rot, np.zeros((T, 8, 3)), 0.01, num_agents=4)
-    assert s["centre_offset"] == pytest.approx(0.1)  # the median of 0.2 and 0
+    assert s["centre_offset"] == pytest.approx(0.25)  # the median of 0.2 (east) and 0.3 (down)
+    assert s["centre_vertical"] == pytest.approx(-0.15)  # the median of 0 and -0.3
+    assert s["centre_horizontal"] == pytest.approx(0.1)  # the median of 0.2 and 0
     assert s["spread"] == pytest.approx(0.35)
     assert s["within_pct"] == pytest.approx(100 * 7 / 8) and s["within_centred_pct"] == 100.0
-    one_swarm = hover_stats(pos, goal, rot, np.zeros((T, 8, 3)), 0.01)  # all 8 as one swarm: centre 0.1 m east
-    assert one_swarm["centre_offset"] == pytest.approx(0.1)
+    one_swarm = hover_stats(pos, goal, rot, np.zeros((T, 8, 3)), 0.01)  # all 8 as one swarm: 0.1 east, 0.15 down
+    assert one_swarm["centre_offset"] == pytest.approx(np.hypot(0.1, 0.15))
+    assert (one_swarm["centre_vertical"], one_swarm["centre_horizontal"]) == pytest.approx((-0.15, 0.1))
     with pytest.raises(ValueError, match="8 drones are not whole swarms of 3"):
         hover_stats(pos, goal, rot, np.zeros((T, 8, 3)), 0.01, num_agents=3)
 
@@ -65,13 +69,15 @@ def test_a_ring_whose_centre_is_off_the_shared_goal():
 def test_table_has_a_row_per_result_and_a_cell_per_column():
     r = {"scenario": "static_diff_goal", "N": 8, "episodes": 10, "seed": 7, "window_s": 3.0, "dist": 0.55,
          "body_offset": [0.11, 0.57, -0.05], "body_offset_norm": 0.58, "yaw_turned_deg": 96.4, "speed": 0.33,
-         "path": 0.97, "net_move": 0.45, "centre_offset": 0.21, "spread": 0.36, "within_pct": 62.5,
+         "path": 0.97, "net_move": 0.45, "centre_offset": 0.21, "centre_vertical": -0.123,
+         "centre_horizontal": 0.17, "spread": 0.36, "within_pct": 62.5,
          "within_centred_pct": 98.75, "success_pct": 6.0}
-    lines = table([("se3", r), ("none", dict(r, body_offset=[0.0, -0.01, 0.0]))]).splitlines()
+    lines = table([("se3", r), ("none", dict(r, body_offset=[0.0, -0.01, 0.0], stochastic=True))]).splitlines()
     assert len(lines) == 4 and all(len(line.split("|")) == len(lines[0].split("|")) for line in lines)
     assert lines[2] == ("| se3 | static_diff_goal, 8, 10, 7 | 3.0 | 0.55 | +0.11, +0.57, -0.05 | 0.58 | 96 | 0.33 | "
-                        "0.97 | 0.45 | 0.21 | 0.36 | 62 / 99 | 6.0 |")
-    assert lines[3].startswith("| none |") and "+0.00, -0.01, +0.00" in lines[3]
+                        "0.97 | 0.45 | 0.21 | -0.12, 0.17 | 0.36 | 62 / 99 | 6.0 |")
+    assert lines[3].startswith("| none | static_diff_goal, 8, 10, 7, sampled actions |")
+    assert "+0.00, -0.01, +0.00" in lines[3]
 
 
 @pytest.mark.parametrize("args, message", [

@@ -73,6 +73,23 @@ def test_recipe_differences_name_recipe_keys_only():
     assert table1_archive.recipe_differences(base, other) == ["env.reward.pos", "model.symmetry", "runner.seed"]
 
 
+def test_a_key_added_after_a_run_was_archived_matches_only_the_value_that_run_had_in_effect():
+    """A config archived before ``env.reward.goal`` existed lacks the key: it counts as goal 0 (the term paid nothing),
+    so the planned recipe with the default matches, and one with the bonus switched on is named as different."""
+    planned = {"env": {"reward": {"pos": 0.5, "goal": 0.0, "goal_radius": 0.5}}, "model": {}, "algo": {},
+               "runner": {"seed": 0}}
+    archived = {"env": {"reward": {"pos": 0.5}}, "model": {}, "algo": {}, "runner": {"seed": 0}}
+    assert table1_archive.KEYS_ADDED_LATER == {"env.reward.goal": 0.0, "env.reward.goal_radius": 0.5}
+    assert table1_archive.recipe_differences(planned, archived) == []
+    assert "goal" not in archived["env"]["reward"]  # the archived config itself is not changed
+    planned["env"]["reward"].update(goal=0.5, goal_radius=0.3)
+    assert table1_archive.recipe_differences(planned, archived) == ["env.reward.goal", "env.reward.goal_radius"]
+    archived["env"]["reward"]["goal"] = 0.5  # written after the key existed: compared as it is
+    assert table1_archive.recipe_differences(planned, archived) == ["env.reward.goal_radius"]
+    other = {"env": {"reward": {"pos": 0.5}}, "model": {}, "algo": {}, "runner": {"seed": 0}}
+    assert table1_archive.recipe_differences(other, archived) == ["env.reward.goal"]  # either side may lack it
+
+
 def test_restore_leaves_a_local_run_alone_and_archive_skips_unfinished_runs(tmp_path):
     src, rd = tmp_path / "src", tmp_path / "rd"
     src.mkdir()
