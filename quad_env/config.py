@@ -16,7 +16,7 @@ COLLISION_FORMS = ("paper", "pairwise")
 # The reward terms: the one list. Order of the kernels' ``terms`` rows (``quad_env.params.T_*``), of
 # ``VecQuadEnv.reward_terms`` and of the accumulator columns; a term's coefficient is the RewardConfig field of
 # its name. The kernel writes all but "crash", which VecQuadEnv adds (floor contacts) and must stay last.
-REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "goal", "crash")
+REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "goal", "height", "crash")
 
 
 @dataclass
@@ -56,6 +56,11 @@ class RewardConfig:
     reward asks for the success radius (README, "The quality goal")."""
     goal_radius: float = 0.5
     """Radius of the ``goal`` bonus, m (default: the success radius of the Suc metric)."""
+    height: float = 0.0
+    """Shaping, not in the paper (0 = the paper's reward): weight of -|z_i - z_i^d|, the vertical part of the
+    distance to the goal alone (times dt). Eight drones sharing one goal hover as a flat ring, and a ring lifted
+    by h keeps each drone at sqrt(r^2 + h^2) of the goal: c1 charges the swarm's height error only at second order
+    (README, "The quality goal"); this term charges it at first order without pulling the ring together."""
     crash: float = 0.0
     """Shaping, not in the paper (0 = the paper's reward): penalty per new floor contact (not times dt);
     the cost of a crash when ``env.respawn_on_floor`` puts the drone straight back in the air."""

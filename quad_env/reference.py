@@ -248,6 +248,7 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
         "floor": -rc.floor * ctrl_dt * (pos[:, 2] <= p.floor_z),
         "tilt": -rc.tilt * ctrl_dt * (1.0 - rot[:, 2, 2]),
         "goal": rc.goal * ctrl_dt * (np.linalg.norm(pos - goal, axis=1) < rc.goal_radius),
+        "height": -rc.height * ctrl_dt * np.abs(pos[:, 2] - goal[:, 2]),
     }
     terms = np.stack([formulas[name] for name in REWARD_TERMS[:KERNEL_TERMS]])
     new_state = dict(pos=pos, vel=vel, rot=rot, omega=omega, motor=motor, goal=goal)

@@ -93,6 +93,29 @@ def test_goal_bonus_inside_its_radius_only(quiet_cfg, radius):
     assert (goal_term() == 0).all()
 
 
+def test_height_term_charges_the_vertical_offset_alone(quiet_cfg):
+    """Three hovering drones offset from their goals by 0.3 m sideways, 0.4 m above and 1.5 m below (and 0.2 m
+    sideways): the term is -c dt |z - z^d|, nothing for the sideways part; off by default (the paper's reward)."""
+    pos = np.array([[0, 0, 2.0], [2, 0, 2.0], [0, 2, 2.0]])
+    goal = pos - np.array([[0.3, 0, 0], [0, 0, 0.4], [0.2, 0, -1.5]])
+    hover = 1 / 1.9
+
+    def terms(**reward):
+        env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0, drag_coeff=0.0, reward=reward), num_envs=1, seed=0)
+        env.set_state(pos=pos, vel=np.zeros((3, 3)), rot=np.tile(np.eye(3), (3, 1, 1)), omega=np.zeros((3, 3)),
+                      motor=np.full((3, 4), np.sqrt(hover)), goal=goal)
+        _, rew, _, _ = env.step(np.full((3, 4), 2 * hover - 1))
+        np.testing.assert_allclose(rew, sum(env.reward_terms[k] for k in REWARD_TERMS), rtol=1e-6)
+        return env.reward_terms
+
+    with_height = terms(height=0.8)  # one hover step moves a drone by < 1e-3 m
+    np.testing.assert_allclose(with_height["height"], -0.8 * DT * np.array([0.0, 0.4, 1.5]), atol=1e-6)
+    np.testing.assert_allclose(with_height["pos"], -0.5 * DT * np.array([0.3, 0.4, np.hypot(0.2, 1.5)]), rtol=1e-3)
+    assert (terms()["height"] == 0).all()
+    with pytest.raises(ValueError, match="env.reward.height must be >= 0"):
+        quiet_cfg(reward=dict(height=-1.0)).validate()
+
+
 def test_goal_radius_must_be_positive(quiet_cfg):
     with pytest.raises(ValueError, match="env.reward.goal_radius"):
         quiet_cfg(reward=dict(goal=1.0, goal_radius=0.0)).validate()
