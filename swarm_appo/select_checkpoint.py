@@ -1,0 +1,157 @@
+"""Pick a run's final policy by evaluation, on episodes the reported evaluation never flies::
+
+    python -m swarm_appo.select_checkpoint --run runs/NAME [--last K] [--episodes 25] [--scenarios NAME,...]
+        [--workers N] [--seed S]
+    python -m swarm_appo.evaluate --checkpoint runs/NAME/checkpoints/selected.pt      # the reported numbers
+
+Why: the policy's success rate swings by 15-30 points between checkpoints late in a run (benchmarks/RESULTS.md,
+"one hour in serial mode"), so the last checkpoint is as likely to sit in a trough as on a crest. Each of the
+run's kept checkpoints (``runner.keep_checkpoints``; the last ``--last`` of them) flies the same validation
+episodes in the evaluation environment (no training aids, mean actions); the best one is copied, atomically, to
+``checkpoints/selected.pt`` and the scores to ``selection.json``.
+
+Ranking: the paper's Suc (higher), then Col (fewer), then Dist (smaller), each the mean over the validation
+episodes. The validation episodes are seeded by ``validation_seed`` (the run's seed + 2,000,029), apart from
+training's and from the evaluation's (``default_eval_seed``: + 1,000,003), so the reported numbers of the
+selected checkpoint are not the numbers it was selected on. ``selected.pt`` is not a ``ckpt_*`` file: resuming
+the run still starts from its latest checkpoint.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+SELECTED_NAME = "selected.pt"
+SELECTION_FILE = "selection.json"
+RANKING = (("suc", True), ("col", False), ("dist", False))  # (table metric, higher is better), in order
+
+
+def validation_seed(train_seed: int) -> int:
+    """Episodes the selection flies: apart from training's and from the reported evaluation's."""
+    return int(train_seed) + 2_000_029
+
+
+@dataclass
+class Candidate:
+    path: str
+    step: int
+    scores: Dict[str, float]  # table metric -> mean over the validation episodes (unscaled: Suc as a share)
+
+
+def rank_key(scores: Dict[str, float]):
+    """Sort key, best first: higher Suc, then fewer collisions, then a smaller distance."""
+    return tuple(-scores[m] if higher else scores[m] for m, higher in RANKING)
+
+
+def best_of(candidates: Sequence[Candidate]) -> Candidate:
+    """The best candidate by ``rank_key``; a tie goes to the later checkpoint (more training)."""
+    if not candidates:
+        raise ValueError("no candidates to select from")
+    return min(candidates, key=lambda c: (rank_key(c.scores), -c.step))
+
+
+def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], episodes: int, seed: Optional[int],
+                      workers: Optional[int], progress: bool = False):
+    """(candidates, scenarios, seed): every checkpoint flown on the same validation episodes."""
+    import numpy as np
+
+    from swarm_appo import evaluation as ev
+    from swarm_appo.eval_tables import METRICS
+
+    specs = ev.load_policy_specs(list(paths))
+    n = specs[-1].env.num_agents
+    names = list(scenarios) if scenarios else [specs[-1].env.scenario]
+    names = ev.resolve_scenarios(",".join(names), [n])
+    seed = validation_seed(specs[-1].seed) if seed is None else int(seed)
+    ev.check_layouts(specs, [n], names)
+    tasks = ev.plan_tasks(specs, [n], names, episodes, episodes, seed, deterministic=True, pictures=False)
+    results = ev.run_tasks(tasks, specs, workers, progress=progress)
+    candidates = []
+    for p, spec in enumerate(specs):
+        flown = [e for r in results if r.task.policy == p for e in r.episodes]
+        scores = {m: float(np.mean([METRICS[m].value(e) for e in flown])) for m, _ in RANKING}
+        candidates.append(Candidate(spec.source, spec.step, scores))
+    return candidates, names, seed
+
+
+def select(run_dir: str, last: Optional[int] = None, episodes: int = 25, scenarios: Optional[Sequence[str]] = None,
+           seed: Optional[int] = None, workers: Optional[int] = 0, progress: bool = False) -> dict:
+    """Score the run's kept checkpoints, copy the best to ``checkpoints/selected.pt`` and write
+    ``selection.json`` (both atomically). Returns the selection record."""
+    from swarm_appo.atomic import atomic_write_bytes
+    from swarm_appo.checkpoint import checkpoint_dir, list_checkpoints
+
+    paths = list_checkpoints(run_dir)
+    if not paths:
+        raise FileNotFoundError(f"no checkpoints (checkpoints/ckpt_*.pt) in run directory {run_dir}")
+    if last is not None:
+        if last < 1:
+            raise ValueError(f"--last must be >= 1, got {last}")
+        paths = paths[-last:]
+    if episodes < 1:
+        raise ValueError(f"--episodes must be >= 1, got {episodes}")
+    candidates, names, seed = score_checkpoints([str(p) for p in paths], scenarios, episodes, seed, workers,
+                                                progress)
+    best = best_of(candidates)
+    target = checkpoint_dir(run_dir) / SELECTED_NAME
+    atomic_write_bytes(target, Path(best.path).read_bytes())
+    record = {
+        "selected": Path(best.path).name, "selected_step": best.step, "copied_to": str(target),
+        "ranking": [f"{m} ({'higher' if h else 'lower'} is better)" for m, h in RANKING],
+        "scenarios": names, "episodes": episodes, "seed": seed, "deterministic": True,
+        "candidates": [{"checkpoint": Path(c.path).name, "step": c.step, **c.scores} for c in candidates],
+    }
+    atomic_write_bytes(Path(run_dir) / SELECTION_FILE, (json.dumps(record, indent=2) + "\n").encode())
+    return record
+
+
+def format_record(record: dict) -> str:
+    lines = [f"validation: {record['episodes']} episodes per checkpoint on {', '.join(record['scenarios'])}, "
+             f"seed {record['seed']}, mean actions, no training aids",
+             "| checkpoint | agent steps | Suc % | Col | Dist (m) |", "|---|---:|---:|---:|---:|"]
+    for c in record["candidates"]:
+        mark = " (selected)" if c["checkpoint"] == record["selected"] else ""
+        lines.append(f"| {c['checkpoint']}{mark} | {c['step']:,} | {100 * c['suc']:.1f} | {c['col']:.2f} | "
+                     f"{c['dist']:.2f} |")
+    lines.append(f"selected {record['selected']} -> {record['copied_to']}")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="swarm-select", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", required=True, help="run directory")
+    p.add_argument("--last", type=int, default=None, help="only the last K kept checkpoints (default: all kept)")
+    p.add_argument("--episodes", type=int, default=25, help="validation episodes per checkpoint")
+    p.add_argument("--scenarios", default=None, help="names separated by commas (default: the training scenario)")
+    p.add_argument("--seed", type=int, default=None, help="validation seed (default: the run's seed + 2,000,029)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="Ray actors, one core each (default: all cores); 0 = in this process")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    import torch
+
+    from swarm_appo.checkpoint import CheckpointCorruptError
+
+    if not Path(args.run).is_dir():
+        p.error(f"--run {args.run} is not a directory")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # one core per task, as in swarm_appo.evaluate
+    try:
+        record = select(args.run, args.last, args.episodes, args.scenarios.split(",") if args.scenarios else None,
+                        args.seed, args.workers, progress=not args.no_progress)
+    except (ValueError, FileNotFoundError, CheckpointCorruptError) as exc:
+        p.error(str(exc))
+    finally:
+        torch.set_num_threads(threads)
+    print(format_record(record))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

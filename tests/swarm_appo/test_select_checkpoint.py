@@ -1,0 +1,96 @@
+"""Final-policy selection by evaluation: every kept checkpoint flies the same validation episodes (seeded apart
+from the reported evaluation's), the best by Suc, then Col, then Dist, is copied to checkpoints/selected.pt."""
+import json
+
+import numpy as np
+import pytest
+
+from encoders.testing import TINY_OPTIONS
+from swarm_appo import evaluate
+from swarm_appo import select_checkpoint as sel
+from swarm_appo.checkpoint import list_checkpoints, load_latest_checkpoint
+from swarm_appo.eval_tables import METRICS
+from swarm_appo.testing import untrained_checkpoint
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
+
+OVERRIDES = ["env.num_agents=3", "env.num_neighbors=2", "env.episode_duration=1.0", "model.encoder=deepsets",
+             "model.head_hidden=16", "runner.keep_checkpoints=5"]
+
+
+def test_ranking_puts_success_first_then_collisions_then_distance():
+    c = [sel.Candidate("a", 1, {"suc": 0.5, "col": 3.0, "dist": 0.2}),
+         sel.Candidate("b", 2, {"suc": 0.6, "col": 9.0, "dist": 2.0}),   # most successes wins whatever else
+         sel.Candidate("c", 3, {"suc": 0.6, "col": 9.0, "dist": 1.0}),   # ... and on a tie, the smaller distance
+         sel.Candidate("d", 4, {"suc": 0.6, "col": 10.0, "dist": 0.1})]  # more collisions lose before distance
+    assert sel.best_of(c).path == "c"
+    assert sel.best_of(c[:2]).path == "b"
+    tie = [sel.Candidate("old", 1, {"suc": 0.5, "col": 1.0, "dist": 1.0}),
+           sel.Candidate("new", 2, {"suc": 0.5, "col": 1.0, "dist": 1.0})]
+    assert sel.best_of(tie).path == "new"  # the later checkpoint on an exact tie
+    with pytest.raises(ValueError, match="no candidates"):
+        sel.best_of([])
+
+
+def test_selection_scores_each_checkpoint_on_validation_episodes_and_copies_the_best(tmp_path, capsys):
+    # three checkpoints of one run: different weights (initialised from different seeds), steps 1000..3000
+    for k in range(3):
+        run = untrained_checkpoint(tmp_path, "r", OVERRIDES + ["env.respawn_on_floor=true"], TINY_OPTIONS["deepsets"],
+                                   seed=k, agent_steps=1000 * (k + 1))
+    paths = list_checkpoints(run)
+    assert len(paths) == 3
+    latest_before = load_latest_checkpoint(run)[1]
+
+    assert sel.main(["--run", str(run), "--episodes", "4", "--workers", "0", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    record = json.loads((run / sel.SELECTION_FILE).read_text())
+
+    # independent reference: each checkpoint flown by the evaluation library on the validation seed,
+    # in the evaluation environment (respawns off although the run trained with them)
+    cfg, _ = evaluate.load_policy_from_checkpoint(str(paths[-1]))
+    seed = sel.validation_seed(cfg.runner.seed)
+    assert seed == record["seed"] != evaluate.default_eval_seed(cfg.runner.seed)
+    env = evaluate.evaluation_env(cfg.env)
+    assert not env.respawn_on_floor
+    ref = {}
+    for p in paths:
+        _, model = evaluate.load_policy_from_checkpoint(str(p))
+        episodes = evaluate.run_episodes(env, evaluate.model_policy(model), 4, seed)
+        assert all(e["respawns"] == 0 for e in episodes)
+        ref[p.name] = {m: float(np.mean([METRICS[m].value(e) for e in episodes])) for m in ("suc", "col", "dist")}
+    got = {c["checkpoint"]: c for c in record["candidates"]}
+    assert set(got) == set(ref)
+    for name, scores in ref.items():
+        for m, v in scores.items():
+            assert got[name][m] == pytest.approx(v, rel=1e-9, abs=1e-12), (name, m)
+    # the untrained policies differ, so the choice is not a default
+    assert len({round(s["dist"], 9) for s in ref.values()}) == 3
+    expected = min(ref, key=lambda n: (-ref[n]["suc"], ref[n]["col"], ref[n]["dist"], -int(n[5:17])))
+    assert record["selected"] == expected
+    selected = run / "checkpoints" / sel.SELECTED_NAME
+    assert selected.read_bytes() == (run / "checkpoints" / expected).read_bytes()
+    assert f"{expected} (selected)" in printed
+    # selected.pt is no ckpt_* file: a resume still starts from the latest checkpoint
+    assert [p.name for p in list_checkpoints(run)] == [p.name for p in paths]
+    assert load_latest_checkpoint(run)[1] == latest_before
+
+    # --last 1: only the latest one is a candidate
+    record = sel.select(str(run), last=1, episodes=2, workers=0)
+    assert [c["checkpoint"] for c in record["candidates"]] == [paths[-1].name] == [record["selected"]]
+
+
+def test_bad_input_is_a_usage_error_naming_the_problem(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit):
+        sel.main(["--run", str(tmp_path / "empty"), "--workers", "0"])
+    assert "no checkpoints" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sel.main(["--run", str(tmp_path / "missing")])
+    assert "is not a directory" in capsys.readouterr().err
+    run = untrained_checkpoint(tmp_path, "r", OVERRIDES, TINY_OPTIONS["deepsets"])
+    with pytest.raises(SystemExit):
+        sel.main(["--run", str(run), "--last", "0", "--workers", "0"])
+    assert "--last must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sel.main(["--run", str(run), "--scenarios", "nope", "--workers", "0"])
+    assert "unknown scenario" in capsys.readouterr().err
