@@ -17,7 +17,10 @@ killed experiment resumes where it stopped, and the table fills in row by row. R
 every finished run on from its last checkpoint to the new budget (and evaluates it again); with a budget-tied lr
 schedule (``algo.lr_schedule=linear``) that is refused, since the decay would restart mid-run.
 ``--archive DIR`` keeps slim copies of the evaluated runs there and restores missing ones from it
-(``benchmarks.table1_archive``), so an experiment can be filled in across machines.
+(``benchmarks.table1_archive``), so an experiment can be filled in across machines. ``--select`` reports, for
+every run alike, the checkpoint ``swarm_appo.select_checkpoint`` picks among the run's kept ones on validation
+episodes of its training scenario (seeded apart from the evaluation's) instead of the last one; its evaluations
+go to ``eval_table1_selected/``, so one experiment can report both.
 
 Output: ``<out>/table1.md`` (also appended to benchmarks/RESULTS.md unless ``--no-results``) with one table
 per (training scenario, evaluation scenario): rows x the paper's columns, mean +- std over seeds of each seed's
@@ -54,6 +57,7 @@ CURVES = ((("swarm/success_rate",), "success rate (Suc)"),
           (("swarm/collisions_drone", "swarm/collisions"), "drone collisions / episode (ColD)"),
           (("swarm/dist",), "distance to goal, last 5 s (m)"))
 EVAL_DIR = "eval_table1"
+SELECTED_EVAL_DIR = "eval_table1_selected"  # --select: the evaluation of checkpoints/selected.pt
 # named baselines that are more than an encoder: row name -> (architecture, the model keys it sets)
 PRESETS: Dict[str, Tuple[str, Tuple[str, ...]]] = {
     "rmappo": ("mlp", ("model.core=gru", "model.critic=central")),  # configs/paper/rmappo.yaml's network
@@ -170,16 +174,26 @@ def eval_scenarios(train_scenario: str, text: str) -> str:
     return "all" if train_scenario == "mix" else train_scenario  # mix-trained: every scenario, as the paper
 
 
-def evaluate_run(rd: Path, scenarios: str, episodes: int, workers: Optional[int]) -> Path:
-    """``swarm_appo.evaluate`` on the run's last checkpoint (seeded as every run: same episodes for every row)."""
+def evaluate_run(rd: Path, scenarios: str, episodes: int, workers: Optional[int],
+                 select_on: Optional[str] = None, select_episodes: int = 25) -> Path:
+    """``swarm_appo.evaluate`` on the run's last checkpoint (seeded as every run: same episodes for every row),
+    or, with ``select_on`` (a scenario), on the checkpoint ``swarm_appo.select_checkpoint`` picks there."""
     from swarm_appo import evaluate
 
-    out = rd / EVAL_DIR
+    name = EVAL_DIR if select_on is None else SELECTED_EVAL_DIR
+    out = rd / name
     if (out / "episodes.jsonl").exists():
         return out
-    tmp = rd / f"{EVAL_DIR}.tmp"
+    checkpoint = rd
+    if select_on is not None:
+        from swarm_appo import select_checkpoint
+
+        record = select_checkpoint.select(str(rd), episodes=select_episodes, scenarios=[select_on], workers=workers)
+        print(f"    selected {record['selected']} on {select_episodes} validation episodes of {select_on}", flush=True)
+        checkpoint = rd / "checkpoints" / select_checkpoint.SELECTED_NAME
+    tmp = rd / f"{name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
-    argv = ["--checkpoint", str(rd), "--scenarios", scenarios, "--episodes", str(episodes), "--seed", "2024",
+    argv = ["--checkpoint", str(checkpoint), "--scenarios", scenarios, "--episodes", str(episodes), "--seed", "2024",
             "--out", str(tmp), "--no-pictures", "--no-progress", "--wandb-mode", "disabled"]
     if workers is not None:
         argv += ["--workers", str(workers)]
@@ -358,6 +372,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-results", action="store_true", help="do not append to benchmarks/RESULTS.md")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--report-only", action="store_true", help="train nothing: table and curves of what exists")
+    p.add_argument("--select", action="store_true",
+                   help="report each run's checkpoint chosen on validation episodes (swarm_appo.select_checkpoint) "
+                        "instead of its last one")
+    p.add_argument("--select-episodes", type=int, default=25, help="validation episodes per checkpoint (--select)")
     p.add_argument("--archive", default=None, metavar="DIR",
                    help="slim copies of finished runs (benchmarks.table1_archive): runs missing from --out are "
                         "restored from DIR if their recipe matches, and every evaluated run is copied into DIR")
@@ -370,6 +388,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from swarm_appo.config import ConfigError
 
     args.agent_steps = int(args.agent_steps)
+    if args.select_episodes < 1:
+        p.error(f"--select-episodes must be >= 1, got {args.select_episodes}")
+    eval_dir = SELECTED_EVAL_DIR if args.select else EVAL_DIR
     try:
         rows = parse_rows(args.rows, args.compare)
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
@@ -388,7 +409,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         items = [(run_dir(archive, sc, row, seed), run_dir(out, sc, row, seed), config_to_dict(cfg))
                  for sc, row, seed, cfg in plan]
         try:
-            restored = restore_runs(items, EVAL_DIR)
+            restored = restore_runs(items, eval_dir)
         except ValueError as exc:
             p.error(str(exc))
         for i in restored:
@@ -407,7 +428,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         rd = run_dir(out, sc, row, seed)
         if not args.report_only and is_short(rd, args.agent_steps):  # a larger budget: train on from the end
             (rd / "done.json").unlink()
-            shutil.rmtree(rd / EVAL_DIR, ignore_errors=True)
+            for name in (EVAL_DIR, SELECTED_EVAL_DIR):
+                shutil.rmtree(rd / name, ignore_errors=True)
         if not args.report_only and not (rd / "done.json").exists():
             print(f"[{k + 1}/{len(plan)}] training {row_label(row)} on {sc}, seed {seed} -> {rd}", flush=True)
             record = train_run(cfg, rd, progress=not args.no_progress)
@@ -417,8 +439,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             print(f"    {record['agent_steps']:,} agent steps, {record['agent_steps_per_s']:,.0f} agent-steps/s "
                   f"(median over the run), {record['wall_s']:.0f} s", flush=True)
         if (rd / "done.json").exists() and not args.report_only:
-            evaluate_run(rd, eval_scenarios(sc, args.eval_scenarios), args.episodes, args.workers)
-        if archive is not None and archive_run(rd, run_dir(archive, sc, row, seed), EVAL_DIR):
+            evaluate_run(rd, eval_scenarios(sc, args.eval_scenarios), args.episodes, args.workers,
+                         select_on=sc if args.select else None, select_episodes=args.select_episodes)
+        if archive is not None and archive_run(rd, run_dir(archive, sc, row, seed), eval_dir):
             print(f"archived {row_label(row)} on {sc}, seed {seed} -> {run_dir(archive, sc, row, seed)}", flush=True)
 
     sections = []
@@ -438,7 +461,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 records = read_metrics(rd)
                 curves.setdefault(label, []).append(records)
                 curves_by_seed.setdefault(label, {})[seed] = records
-                ep = existing(rd / EVAL_DIR / "episodes.jsonl")
+                ep = existing(rd / eval_dir / "episodes.jsonl")
                 if ep is not None:
                     per_scenario = seed_means(ep)
                     if len(per_scenario) > 1:
@@ -480,6 +503,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         + (f" with {' '.join(args.set)}" if args.set else "")
         + (f"; compared: {args.compare}" if args.compare else "") + f"; {args.agent_steps:,} agent steps per run; "
         f"seeds {seeds}; {done} of {len(plan)} runs trained",
+        "- final policy: " + (f"each run's checkpoint chosen by `swarm_appo.select_checkpoint` among its kept ones "
+                              f"({args.select_episodes} validation episodes of the training scenario, seeded apart "
+                              f"from the evaluation's; by Suc, then Col, then Dist)" if args.select
+                              else "each run's last checkpoint"),
         "- cells: mean ± std over seeds (population std) of each seed's mean over its evaluation episodes; Rew = the "
         "paper's terms c1..c5, Shaping = the training-only terms; Col = drone, obstacle and room contacts after the "
         "1.5 s grace period, ColD = drone-drone only; Suc = within 0.5 m of the goal during the whole last second "

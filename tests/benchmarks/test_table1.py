@@ -186,3 +186,30 @@ def test_pooled_row_weights_every_scenario_equally_and_counts_episodes():
     assert table1.pooled_means(per_scenario) == {"dist": 2.0, "suc": 20.0, "episodes": 20.0}
     assert table1.episodes_label({"r": [{"episodes": 20}, {"episodes": 20}]}) == "20"
     assert table1.episodes_label({"r": [{"episodes": 20}], "s": [{"episodes": 50}]}) == "20-50"
+
+
+def test_select_reports_the_checkpoint_chosen_on_validation_episodes(tmp_path, one_thread, capsys):
+    # a checkpoint every update: 8 updates, the last 3 kept, all candidates
+    assert run(tmp_path, "--rows", "deepsets/se3", "--seeds", "0", "--select", "--select-episodes", "2",
+               "--set", "runner.checkpoint_every_updates=1") == 0
+    rd = tmp_path / "exp" / "runs" / "static_same_goal" / "deepsets-se3" / "seed0"
+    selection = json.loads((rd / "selection.json").read_text())
+    kept = sorted(p.name for p in (rd / "checkpoints").glob("ckpt_*.pt"))
+    assert len(kept) == 3 and sorted(c["checkpoint"] for c in selection["candidates"]) == kept
+    assert selection["scenarios"] == ["static_same_goal"] and selection["episodes"] == 2
+    assert selection["seed"] != 2024  # validation episodes are not the reported ones
+    chosen = (rd / "checkpoints" / selection["selected"]).read_bytes()
+    assert (rd / "checkpoints" / "selected.pt").read_bytes() == chosen
+    # the table reads the selected checkpoint's evaluation; the last checkpoint's is not made
+    assert not (rd / table1.EVAL_DIR).exists()
+    episodes = [json.loads(x) for x in (rd / table1.SELECTED_EVAL_DIR / "episodes.jsonl").read_text().splitlines()]
+    assert len(episodes) == 2
+    table = (tmp_path / "exp" / "table1.md").read_text()
+    assert "final policy: each run's checkpoint chosen by `swarm_appo.select_checkpoint`" in table
+    assert f"selected {selection['selected']} on 2 validation episodes" in capsys.readouterr().out
+    # the same command without --select evaluates the last checkpoint beside it, and says so
+    assert run(tmp_path, "--rows", "deepsets/se3", "--seeds", "0", "--set", "runner.checkpoint_every_updates=1") == 0
+    assert (rd / table1.EVAL_DIR / "episodes.jsonl").exists()
+    assert "final policy: each run's last checkpoint" in (tmp_path / "exp" / "table1.md").read_text()
+    with pytest.raises(SystemExit):
+        run(tmp_path, "--rows", "deepsets/se3", "--seeds", "0", "--select", "--select-episodes", "0")
