@@ -119,6 +119,12 @@ def _encode(state: Mapping[str, Any], step: int, metric: Optional[float]) -> byt
     return json.dumps(header).encode() + b"\n" + payload
 
 
+def write_checkpoint_file(path: PathLike, state: Mapping[str, Any], step: int) -> Path:
+    """Atomically write ``state`` as one checkpoint file at ``path`` (a file outside the ``ckpt_*`` series, e.g.
+    ``checkpoints/selected.pt``: no rotation, no ``best.pt``)."""
+    return atomic_write_bytes(path, _encode(state, step, None))
+
+
 def _read_verified(path: Path) -> Tuple[Dict[str, Any], bytes]:
     """Header and payload of a checkpoint file; CheckpointCorruptError if anything does not add up."""
     try:

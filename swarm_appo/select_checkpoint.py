@@ -1,14 +1,18 @@
 """Pick a run's final policy by evaluation, on episodes the reported evaluation never flies::
 
     python -m swarm_appo.select_checkpoint --run runs/NAME [--last K] [--episodes 25] [--scenarios NAME,...]
-        [--workers N] [--seed S]
+        [--workers N] [--seed S] [--no-averages]
     python -m swarm_appo.evaluate --checkpoint runs/NAME/checkpoints/selected.pt      # the reported numbers
 
 Why: the policy's success rate swings by 15-30 points between checkpoints late in a run (benchmarks/RESULTS.md,
 "one hour in serial mode"), so the last checkpoint is as likely to sit in a trough as on a crest. Each of the
 run's kept checkpoints (``runner.keep_checkpoints``; the last ``--last`` of them) flies the same validation
-episodes in the evaluation environment (no training aids, mean actions); the best one is copied, atomically, to
-``checkpoints/selected.pt`` and the scores to ``selection.json``.
+episodes in the evaluation environment (no training aids, mean actions), and so do the averages of the last j of
+them (j = 2..K: the mean of their weights, the observation statistics of the newest; ``--no-averages`` leaves them
+out): late in a run, with a small lr and a critic that explains little, Adam's steps wander about a good policy,
+and their mean can be better than any one of them. The best candidate is written, atomically, to
+``checkpoints/selected.pt`` (a copy of the file, or the averaged policy as a policy-only checkpoint) and the
+scores to ``selection.json``.
 
 Ranking: the paper's Suc (higher), then Col (fewer), then Dist (smaller), each the mean over the validation
 episodes. The validation episodes are seeded by ``validation_seed`` (the run's seed + 2,000,029), apart from
@@ -36,9 +40,22 @@ def validation_seed(train_seed: int) -> int:
 
 @dataclass
 class Candidate:
-    path: str
-    step: int
+    path: str  # the checkpoint file, or "mean of the last j" for an average
+    step: int  # agent steps (of the newest checkpoint in an average)
     scores: Dict[str, float]  # table metric -> mean over the validation episodes (unscaled: Suc as a share)
+    averaged: int = 1  # how many checkpoints' weights it is the mean of
+
+
+def average_weights(states: Sequence[Dict], parameters: Sequence[str]) -> Dict:
+    """The mean (in float64, cast back) of the named parameters over the state dicts; every other entry (the
+    observation statistics, integer buffers) from the last state dict."""
+    import torch
+
+    out = dict(states[-1])
+    for name in parameters:
+        out[name] = (torch.stack([s[name].to(torch.float64) for s in states]).mean(0)
+                     .to(states[-1][name].dtype))
+    return out
 
 
 def rank_key(scores: Dict[str, float]):
@@ -47,21 +64,34 @@ def rank_key(scores: Dict[str, float]):
 
 
 def best_of(candidates: Sequence[Candidate]) -> Candidate:
-    """The best candidate by ``rank_key``; a tie goes to the later checkpoint (more training)."""
+    """The best candidate by ``rank_key``; a tie goes to the later checkpoint (more training), then to the
+    plain checkpoint over an average."""
     if not candidates:
         raise ValueError("no candidates to select from")
-    return min(candidates, key=lambda c: (rank_key(c.scores), -c.step))
+    return min(candidates, key=lambda c: (rank_key(c.scores), -c.step, c.averaged))
 
 
 def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], episodes: int, seed: Optional[int],
-                      workers: Optional[int], progress: bool = False):
-    """(candidates, scenarios, seed): every checkpoint flown on the same validation episodes."""
+                      workers: Optional[int], progress: bool = False, averages: bool = True):
+    """(candidates, their specs, scenarios, seed): every checkpoint, and with ``averages`` the mean of the last j
+    of them for j = 2..len(paths), flown on the same validation episodes."""
+    import dataclasses
+
     import numpy as np
 
     from swarm_appo import evaluation as ev
     from swarm_appo.eval_tables import METRICS
 
     specs = ev.load_policy_specs(list(paths))
+    averaged = [1] * len(specs)
+    if averages and len(specs) > 1:
+        files, newest = list(specs), specs[-1]
+        parameters = [name for name, _ in newest.factory().named_parameters()]
+        for j in range(2, len(files) + 1):
+            weights = average_weights([s.weights for s in files[-j:]], parameters)
+            specs.append(dataclasses.replace(newest, label=f"mean of the last {j}", weights=weights,
+                                             source=f"mean of the last {j}"))
+            averaged.append(j)
     n = specs[-1].env.num_agents
     names = list(scenarios) if scenarios else [specs[-1].env.scenario]
     names = ev.resolve_scenarios(",".join(names), [n])
@@ -73,16 +103,17 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
     for p, spec in enumerate(specs):
         flown = [e for r in results if r.task.policy == p for e in r.episodes]
         scores = {m: float(np.mean([METRICS[m].value(e) for e in flown])) for m, _ in RANKING}
-        candidates.append(Candidate(spec.source, spec.step, scores))
-    return candidates, names, seed
+        candidates.append(Candidate(spec.source, spec.step, scores, averaged[p]))
+    return candidates, specs, names, seed
 
 
 def select(run_dir: str, last: Optional[int] = None, episodes: int = 25, scenarios: Optional[Sequence[str]] = None,
-           seed: Optional[int] = None, workers: Optional[int] = 0, progress: bool = False) -> dict:
+           seed: Optional[int] = None, workers: Optional[int] = 0, progress: bool = False,
+           averages: bool = True) -> dict:
     """Score the run's kept checkpoints, copy the best to ``checkpoints/selected.pt`` and write
     ``selection.json`` (both atomically). Returns the selection record."""
     from swarm_appo.atomic import atomic_write_bytes
-    from swarm_appo.checkpoint import checkpoint_dir, list_checkpoints
+    from swarm_appo.checkpoint import TrainingState, checkpoint_dir, list_checkpoints, write_checkpoint_file
 
     paths = list_checkpoints(run_dir)
     if not paths:
@@ -93,16 +124,24 @@ def select(run_dir: str, last: Optional[int] = None, episodes: int = 25, scenari
         paths = paths[-last:]
     if episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
-    candidates, names, seed = score_checkpoints([str(p) for p in paths], scenarios, episodes, seed, workers,
-                                                progress)
+    candidates, specs, names, seed = score_checkpoints([str(p) for p in paths], scenarios, episodes, seed, workers,
+                                                       progress, averages)
     best = best_of(candidates)
     target = checkpoint_dir(run_dir) / SELECTED_NAME
-    atomic_write_bytes(target, Path(best.path).read_bytes())
+    if best.averaged == 1:
+        atomic_write_bytes(target, Path(best.path).read_bytes())
+    else:  # a policy-only checkpoint of the averaged weights, with the newest checkpoint's config and steps
+        newest = TrainingState.load(paths[-1])
+        state = TrainingState(learner={"model": specs[candidates.index(best)].weights},
+                              agent_steps=newest.agent_steps, config=newest.config)
+        write_checkpoint_file(target, state.payload(), newest.agent_steps)
     record = {
-        "selected": Path(best.path).name, "selected_step": best.step, "copied_to": str(target),
+        "selected": Path(best.path).name, "selected_step": best.step, "averaged": best.averaged,
+        "copied_to": str(target),
         "ranking": [f"{m} ({'higher' if h else 'lower'} is better)" for m, h in RANKING],
         "scenarios": names, "episodes": episodes, "seed": seed, "deterministic": True,
-        "candidates": [{"checkpoint": Path(c.path).name, "step": c.step, **c.scores} for c in candidates],
+        "candidates": [{"checkpoint": Path(c.path).name, "step": c.step, "averaged": c.averaged, **c.scores}
+                       for c in candidates],
     }
     atomic_write_bytes(Path(run_dir) / SELECTION_FILE, (json.dumps(record, indent=2) + "\n").encode())
     return record
@@ -132,6 +171,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--seed", type=int, default=None, help="validation seed (default: the run's seed + 2,000,029)")
     p.add_argument("--workers", type=int, default=None,
                    help="Ray actors, one core each (default: all cores); 0 = in this process")
+    p.add_argument("--no-averages", action="store_true", help="only the checkpoints, not the means of the last j")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     import torch
@@ -144,7 +184,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     torch.set_num_threads(1)  # one core per task, as in swarm_appo.evaluate
     try:
         record = select(args.run, args.last, args.episodes, args.scenarios.split(",") if args.scenarios else None,
-                        args.seed, args.workers, progress=not args.no_progress)
+                        args.seed, args.workers, progress=not args.no_progress, averages=not args.no_averages)
     except (ValueError, FileNotFoundError, CheckpointCorruptError) as exc:
         p.error(str(exc))
     finally:

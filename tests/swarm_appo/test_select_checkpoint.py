@@ -41,7 +41,7 @@ def test_selection_scores_each_checkpoint_on_validation_episodes_and_copies_the_
     assert len(paths) == 3
     latest_before = load_latest_checkpoint(run)[1]
 
-    assert sel.main(["--run", str(run), "--episodes", "4", "--workers", "0", "--no-progress"]) == 0
+    assert sel.main(["--run", str(run), "--episodes", "4", "--workers", "0", "--no-progress", "--no-averages"]) == 0
     printed = capsys.readouterr().out
     record = json.loads((run / sel.SELECTION_FILE).read_text())
 
@@ -74,7 +74,7 @@ def test_selection_scores_each_checkpoint_on_validation_episodes_and_copies_the_
     assert [p.name for p in list_checkpoints(run)] == [p.name for p in paths]
     assert load_latest_checkpoint(run)[1] == latest_before
 
-    # --last 1: only the latest one is a candidate
+    # --last 1: only the latest one is a candidate (no average of one)
     record = sel.select(str(run), last=1, episodes=2, workers=0)
     assert [c["checkpoint"] for c in record["candidates"]] == [paths[-1].name] == [record["selected"]]
 
@@ -94,3 +94,67 @@ def test_bad_input_is_a_usage_error_naming_the_problem(tmp_path, capsys):
     with pytest.raises(SystemExit):
         sel.main(["--run", str(run), "--scenarios", "nope", "--workers", "0"])
     assert "unknown scenario" in capsys.readouterr().err
+
+
+def _numpy_mean_state(paths, parameters):
+    """Reference: the float64 numpy mean of the named parameters, the rest from the newest file."""
+    import torch
+
+    states = [evaluate.load_checkpoint_policy(str(p)).model.state_dict() for p in paths]
+    out = {k: v.clone() for k, v in states[-1].items()}
+    for name in parameters:
+        mean = np.mean([s[name].numpy().astype(np.float64) for s in states], axis=0)
+        out[name] = torch.from_numpy(mean).to(states[-1][name].dtype)
+    return out
+
+
+def test_averages_of_the_last_checkpoints_are_candidates_and_can_be_selected(tmp_path, monkeypatch):
+    for k in range(3):
+        run = untrained_checkpoint(tmp_path, "r", OVERRIDES, TINY_OPTIONS["deepsets"], seed=k,
+                                   agent_steps=1000 * (k + 1))
+    paths = list_checkpoints(run)
+    loaded = evaluate.load_checkpoint_policy(str(paths[-1]))
+    parameters = [n for n, _ in loaded.model.named_parameters()]
+    buffers = [n for n in loaded.model.state_dict() if n not in parameters]
+    assert "log_std" in parameters and any(n.startswith("obs_norm.") for n in buffers)
+
+    # average_weights against the numpy reference; buffers (observation statistics) from the newest
+    specs = evaluate.load_policy_specs([str(p) for p in paths])
+    got = sel.average_weights([s.weights for s in specs], parameters)
+    ref = _numpy_mean_state(paths, parameters)
+    for name in parameters:
+        assert torch_allclose(got[name], ref[name]), name
+    for name in buffers:
+        assert got[name].equal(specs[-1].weights[name]), name
+
+    # the candidates: 3 files + the means of the last 2 and 3, each scored like the reference flies it
+    chosen = {}
+
+    def pick_the_mean_of_three(candidates):
+        chosen["list"] = list(candidates)
+        return next(c for c in candidates if c.averaged == 3)
+
+    monkeypatch.setattr(sel, "best_of", pick_the_mean_of_three)
+    record = sel.select(str(run), episodes=3, workers=0)
+    assert [c["averaged"] for c in record["candidates"]] == [1, 1, 1, 2, 3]
+    assert record["selected"] == "mean of the last 3" and record["averaged"] == 3
+    seed = record["seed"]
+    env = evaluate.evaluation_env(loaded.cfg.env)
+    for c, j in zip(record["candidates"][3:], (2, 3)):
+        model = loaded.factory()
+        model.load_state_dict(_numpy_mean_state(paths[-j:], parameters))
+        episodes = evaluate.run_episodes(env, evaluate.model_policy(model), 3, seed)
+        assert c["dist"] == pytest.approx(float(np.mean([METRICS["dist"].value(e) for e in episodes])), rel=1e-6)
+    # selected.pt: a valid policy-only checkpoint of the mean, with the newest checkpoint's config and steps,
+    # that the evaluation command loads; resume still ignores it
+    selected = evaluate.load_checkpoint_policy(str(run / "checkpoints" / sel.SELECTED_NAME))
+    assert selected.agent_steps == 3000 and selected.cfg == loaded.cfg
+    for name, value in selected.model.state_dict().items():
+        assert torch_allclose(value, ref[name]), name
+    assert load_latest_checkpoint(run)[1] == paths[-1]
+
+
+def torch_allclose(a, b):
+    import torch
+
+    return torch.allclose(a.double(), b.double(), rtol=1e-6, atol=1e-7)
