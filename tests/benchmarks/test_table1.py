@@ -195,11 +195,13 @@ def test_select_reports_the_checkpoint_chosen_on_validation_episodes(tmp_path, o
     rd = tmp_path / "exp" / "runs" / "static_same_goal" / "deepsets-se3" / "seed0"
     selection = json.loads((rd / "selection.json").read_text())
     kept = sorted(p.name for p in (rd / "checkpoints").glob("ckpt_*.pt"))
-    assert len(kept) == 3 and sorted(c["checkpoint"] for c in selection["candidates"]) == kept
+    assert len(kept) == 3 and [c["checkpoint"] for c in selection["candidates"]] == kept + [
+        "mean of the last 2", "mean of the last 3"]  # the files and the means of their weights
     assert selection["scenarios"] == ["static_same_goal"] and selection["episodes"] == 2
     assert selection["seed"] != 2024  # validation episodes are not the reported ones
-    chosen = (rd / "checkpoints" / selection["selected"]).read_bytes()
-    assert (rd / "checkpoints" / "selected.pt").read_bytes() == chosen
+    from swarm_appo.evaluation import load_checkpoint_policy
+
+    assert load_checkpoint_policy(str(rd / "checkpoints" / "selected.pt")).agent_steps == selection["selected_step"]
     # the table reads the selected checkpoint's evaluation; the last checkpoint's is not made
     assert not (rd / table1.EVAL_DIR).exists()
     episodes = [json.loads(x) for x in (rd / table1.SELECTED_EVAL_DIR / "episodes.jsonl").read_text().splitlines()]
