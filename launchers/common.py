@@ -47,6 +47,7 @@ def print_result(result) -> None:
         run = result.run_dir
         print("next:")
         print(f"  python -m swarm_appo.evaluate --checkpoint {run} --random-baseline   # the paper's Table 1")
+        print(f"  python -m swarm_appo.select_checkpoint --run {run}   # final policy chosen on validation episodes")
         print(f"  python -m swarm_appo.export --checkpoint {run} --out export/{run.name}   # actor for a robot")
         print(f"  python -m swarm_appo.render --checkpoint {run}                       # PNG + GIF of the swarm")
         print(f"  python -m launchers.local --resume {run}                             # train on")

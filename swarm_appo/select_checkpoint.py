@@ -159,7 +159,7 @@ def format_record(record: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def build_parser():
     import argparse
 
     p = argparse.ArgumentParser(prog="swarm-select", description=__doc__,
@@ -173,6 +173,11 @@ def main(argv: Optional[List[str]] = None) -> int:
                    help="Ray actors, one core each (default: all cores); 0 = in this process")
     p.add_argument("--no-averages", action="store_true", help="only the checkpoints, not the means of the last j")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
     import torch
 
