@@ -143,17 +143,27 @@ def restore_runs(items: Sequence[Tuple[Path, Path, Mapping[str, Any]]], eval_dir
     """``restore_run`` for each (archived run, run folder, planned config), after checking every one of them: a recipe
     mismatch anywhere raises ValueError before any run is restored. Returns the indices of the restored items."""
     for src, rd, planned in items:
-        error = _recipe_error(src, rd, planned)
+        error = _recipe_error(src, rd, planned) or _evaluation_error(src, rd, eval_dir)
         if error:
             raise ValueError(error)
     return [i for i, (src, rd, planned) in enumerate(items) if restore_run(src, rd, planned, eval_dir)]
+
+
+def _evaluation_error(src: Path, rd: Path, eval_dir: str) -> Optional[str]:
+    """Why a finished archived run cannot stand in for ``rd``: it was evaluated under the other final-policy rule
+    (``table1 --select`` or not), and an archived run has no checkpoints to evaluate again."""
+    if rd.exists() or not (src / "done.json").exists() or existing(src / eval_dir / EVAL_FILE) is not None:
+        return None
+    return (f"archived run {src} has no {eval_dir}/{EVAL_FILE}: it was evaluated with the other final policy (with "
+            f"or without table1 --select), and an archived run keeps no checkpoints to evaluate again; use the "
+            f"archive's rule, or another --archive")
 
 
 def restore_run(src: Path, rd: Path, planned: Mapping[str, Any], eval_dir: str) -> bool:
     """Copy the archived run ``src`` into the missing run folder ``rd`` (plain files, as the trainer writes them).
     Returns False if ``src`` holds no finished run or ``rd`` exists already (a local run, even a partial one,
     wins); raises ValueError naming the keys if the archived run was trained with another recipe."""
-    error = _recipe_error(src, rd, planned)
+    error = _recipe_error(src, rd, planned) or _evaluation_error(src, rd, eval_dir)
     if error:
         raise ValueError(error)
     if rd.exists() or not (src / "done.json").exists():

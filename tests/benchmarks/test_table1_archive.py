@@ -57,6 +57,14 @@ def test_an_archived_run_of_another_recipe_is_refused_before_anything_runs(tmp_p
     assert not (tmp_path / "b").exists()
     with pytest.raises(SystemExit):  # the archive is not the experiment folder it copies from
         table1.main(["--out", str(arc), *TINY, *ROWS, "--archive", str(arc)])
+    capsys.readouterr()
+    # runs archived with their last checkpoint's evaluation cannot stand in for --select (no checkpoints to choose
+    # from): refused before anything is written
+    with pytest.raises(SystemExit) as e:
+        table1.main(["--out", str(tmp_path / "c"), "--figures", str(tmp_path / "fig"), *TINY, *ROWS,
+                     "--archive", str(arc), "--select"])
+    assert e.value.code == 2 and "eval_table1_selected" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
 
 
 def test_recipe_differences_name_recipe_keys_only():
@@ -111,6 +119,8 @@ def test_restore_runs_checks_every_recipe_before_restoring_any(tmp_path):
         src.mkdir(parents=True)
         (src / "done.json").write_text("{}")
         (src / "config.yaml").write_text(yaml.safe_dump({**planned, "algo": {"lr": lr}}))
+        (src / "eval_table1").mkdir()
+        (src / "eval_table1" / "episodes.jsonl").write_text("")
         items.append((src, tmp_path / "out" / name, planned))
     with pytest.raises(ValueError, match="algo.lr"):
         table1_archive.restore_runs(items, "eval_table1")
