@@ -83,6 +83,10 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
     from swarm_appo.eval_tables import METRICS
 
     specs = ev.load_policy_specs(list(paths))
+    n = specs[-1].env.num_agents
+    names = list(scenarios) if scenarios else [specs[-1].env.scenario]
+    names = ev.resolve_scenarios(",".join(names), [n])
+    ev.check_layouts(specs, [n], names)  # the files only: a weight mean has the newest file's layout
     averaged = [1] * len(specs)
     if averages and len(specs) > 1:
         files, newest = list(specs), specs[-1]
@@ -92,11 +96,7 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
             specs.append(dataclasses.replace(newest, label=f"mean of the last {j}", weights=weights,
                                              source=f"mean of the last {j}"))
             averaged.append(j)
-    n = specs[-1].env.num_agents
-    names = list(scenarios) if scenarios else [specs[-1].env.scenario]
-    names = ev.resolve_scenarios(",".join(names), [n])
     seed = validation_seed(specs[-1].seed) if seed is None else int(seed)
-    ev.check_layouts(specs, [n], names)
     tasks = ev.plan_tasks(specs, [n], names, episodes, episodes, seed, deterministic=True, pictures=False)
     results = ev.run_tasks(tasks, specs, workers, progress=progress)
     candidates = []

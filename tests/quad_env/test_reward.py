@@ -72,21 +72,27 @@ def test_floor_and_tilt_shaping_terms(quiet_cfg):
     np.testing.assert_allclose(t["tilt"], [0.0, 0.0, -0.7 * DT * (1 - c)], rtol=1e-5, atol=1e-9)
 
 
+def _hover_step_terms(quiet_cfg, pos, goal, reward):
+    """Reward terms of one hover step of three level, still drones at ``pos`` with goals ``goal`` (their sum checked
+    against the reward)."""
+    hover = 1 / 1.9
+    env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0, drag_coeff=0.0, reward=reward), num_envs=1, seed=0)
+    env.set_state(pos=pos, vel=np.zeros((3, 3)), rot=np.tile(np.eye(3), (3, 1, 1)), omega=np.zeros((3, 3)),
+                  motor=np.full((3, 4), np.sqrt(hover)), goal=goal)
+    _, rew, _, _ = env.step(np.full((3, 4), 2 * hover - 1))
+    np.testing.assert_allclose(rew, sum(env.reward_terms[k] for k in REWARD_TERMS), rtol=1e-6)
+    return env.reward_terms
+
+
 @pytest.mark.parametrize("radius", [0.5, 1.2])
 def test_goal_bonus_inside_its_radius_only(quiet_cfg, radius):
     """Three hovering drones 0.3, 0.7 and 1.5 m from their goals: the bonus c dt goes to those strictly inside
     ``goal_radius``; off by default (the paper's reward)."""
     pos = np.array([[0, 0, 2.0], [2, 0, 2.0], [0, 2, 2.0]])
     goal = pos + np.array([[0.3, 0, 0], [0, 0.7, 0], [0, 0, 1.5]])
-    hover = 1 / 1.9
 
     def goal_term(**reward):
-        env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0, drag_coeff=0.0, reward=reward), num_envs=1, seed=0)
-        env.set_state(pos=pos, vel=np.zeros((3, 3)), rot=np.tile(np.eye(3), (3, 1, 1)), omega=np.zeros((3, 3)),
-                      motor=np.full((3, 4), np.sqrt(hover)), goal=goal)
-        _, rew, _, _ = env.step(np.full((3, 4), 2 * hover - 1))
-        np.testing.assert_allclose(rew, sum(env.reward_terms[k] for k in REWARD_TERMS), rtol=1e-6)
-        return env.reward_terms["goal"]
+        return _hover_step_terms(quiet_cfg, pos, goal, reward)["goal"]
 
     inside = np.array([0.3, 0.7, 1.5]) < radius  # one hover step moves a drone by < 1e-3 m
     np.testing.assert_allclose(goal_term(goal=2.0, goal_radius=radius), 2.0 * DT * inside, rtol=1e-6)
@@ -98,15 +104,9 @@ def test_height_term_charges_the_vertical_offset_alone(quiet_cfg):
     sideways): the term is -c dt |z - z^d|, nothing for the sideways part; off by default (the paper's reward)."""
     pos = np.array([[0, 0, 2.0], [2, 0, 2.0], [0, 2, 2.0]])
     goal = pos - np.array([[0.3, 0, 0], [0, 0, 0.4], [0.2, 0, -1.5]])
-    hover = 1 / 1.9
 
     def terms(**reward):
-        env = VecQuadEnv(quiet_cfg(num_agents=3, num_neighbors=0, drag_coeff=0.0, reward=reward), num_envs=1, seed=0)
-        env.set_state(pos=pos, vel=np.zeros((3, 3)), rot=np.tile(np.eye(3), (3, 1, 1)), omega=np.zeros((3, 3)),
-                      motor=np.full((3, 4), np.sqrt(hover)), goal=goal)
-        _, rew, _, _ = env.step(np.full((3, 4), 2 * hover - 1))
-        np.testing.assert_allclose(rew, sum(env.reward_terms[k] for k in REWARD_TERMS), rtol=1e-6)
-        return env.reward_terms
+        return _hover_step_terms(quiet_cfg, pos, goal, reward)
 
     with_height = terms(height=0.8)  # one hover step moves a drone by < 1e-3 m
     np.testing.assert_allclose(with_height["height"], -0.8 * DT * np.array([0.0, 0.4, 1.5]), atol=1e-6)
