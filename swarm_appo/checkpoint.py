@@ -62,7 +62,8 @@ class TrainingState:
     and the benchmarks read it.
 
     Payload keys: ``format``, ``learner`` (``Learner.state_dict()``: model, optimizer, version, num_updates,
-    learner RNG; a policy-only checkpoint has just ``model``), ``agent_steps``, ``config`` (the resolved config
+    learner RNG, with ``algo.weight_ema`` the running weight averages ``weight_ema``; a policy-only checkpoint has
+    just ``model``), ``agent_steps``, ``config`` (the resolved config
     tree), ``rng`` (python, numpy, torch; None in a policy-only checkpoint), ``wandb_id``."""
 
     learner: Dict[str, Any]

@@ -148,6 +148,11 @@ class AlgoConfig:
     """"constant" (the paper) or "linear": lr * (1 - agent_steps / runner.total_agent_steps), down to 0 at the
     budget (Sample Factory's linear decay). A run of the 2-core recipe at constant 3e-4 collapsed after ~30 M steps
     with approx-KL rising to 0.05-0.085 (benchmarks/RESULTS.md, "quality goal")."""
+    weight_ema: Tuple[float, ...] = ()
+    """Horizons H (agent steps) of exponential moving averages of the weights, e.g. [2000000, 5000000]: each
+    weighs the weights after a batch by exp(-age / H) (``swarm_appo.weight_ema``). A read-out only (training is
+    unchanged); saved in checkpoints, where ``swarm_appo.select_checkpoint`` flies them as candidates for the final
+    policy. Empty (default): none."""
 
 
 @dataclass
@@ -545,6 +550,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check(a.max_consecutive_skips >= 0, "algo.max_consecutive_skips", "must be >= 0 (0 = never stop)",
            a.max_consecutive_skips)
     _check(a.lr_schedule in LR_SCHEDULES, "algo.lr_schedule", f"must be one of {list(LR_SCHEDULES)}", a.lr_schedule)
+    _check(all(h > 0 for h in a.weight_ema), "algo.weight_ema", "must be horizons > 0 (agent steps)", a.weight_ema)
+    _check(len(set(a.weight_ema)) == len(a.weight_ema), "algo.weight_ema", "must not repeat a horizon", a.weight_ema)
     _check(0 <= a.gamma <= 1, "algo.gamma", "must be in [0, 1]", a.gamma)
     _check(0 <= a.vtrace_lambda <= 1, "algo.vtrace_lambda", "must be in [0, 1]", a.vtrace_lambda)
     _check(all(0 <= b < 1 for b in a.adam_betas), "algo.adam_betas", "must be two numbers in [0, 1)", a.adam_betas)

@@ -19,6 +19,8 @@ from swarm_appo.losses import appo_loss
 from swarm_appo.metrics import LagStats
 from swarm_appo.precision import autocast
 from swarm_appo.vtrace import fold_truncation_bootstrap, vtrace
+from swarm_appo.weight_ema import STATE_KEY as EMA_KEY
+from swarm_appo.weight_ema import WeightEMA
 
 
 def stack_fragments(fragments: List[Dict[str, Any]]) -> Dict[str, np.ndarray]:
@@ -74,15 +76,20 @@ class Learner:
         self.skipped_updates = 0  # non-finite loss or gradient
         self.consecutive_skips = 0  # skipped updates since the last good one (the trainer stops a run at a limit)
         self._num_agents = None  # drones per swarm of the batch in training (a central critic needs it)
+        # algo.weight_ema: running averages of the weights, a read-out for choosing the final policy
+        self.weight_ema = WeightEMA(self.model, algo.weight_ema) if algo.weight_ema else None
 
     # ------------------------------------------------------------------ weights
     def cpu_weights(self) -> Tuple[int, Dict[str, torch.Tensor]]:
         return self.version, {k: v.detach().to("cpu", copy=True) for k, v in self.model.state_dict().items()}
 
     def state_dict(self) -> Dict[str, Any]:
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "version": self.version, "num_updates": self.num_updates,
-                "skipped_updates": self.skipped_updates, "generator": self.generator.get_state()}
+        state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                 "version": self.version, "num_updates": self.num_updates,
+                 "skipped_updates": self.skipped_updates, "generator": self.generator.get_state()}
+        if self.weight_ema is not None:
+            state[EMA_KEY] = self.weight_ema.state_dict()
+        return state
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
@@ -91,6 +98,12 @@ class Learner:
         self.num_updates = state["num_updates"]
         self.skipped_updates = state.get("skipped_updates", 0)
         self.generator.set_state(state["generator"])
+        if self.weight_ema is not None:
+            if EMA_KEY in state:
+                self.weight_ema.load_state_dict(state[EMA_KEY])
+            else:  # a checkpoint of a run without algo.weight_ema: the averages start at the resumed weights
+                warnings.warn("the checkpoint holds no weight EMA (algo.weight_ema): the averages start now")
+                self.weight_ema = WeightEMA(self.model, self.weight_ema.horizons)
 
     # ------------------------------------------------------------------ training
     def train(self, fragments: List[Dict[str, Any]]) -> Dict[str, float]:
@@ -118,6 +131,8 @@ class Learner:
                     stats_sum[k] = stats_sum.get(k, 0.0) + v
                 n_mb += 1
         self.version += 1
+        if self.weight_ema is not None:
+            self.weight_ema.update(self.model, T * B)
         out = {f"losses/{k}": v / max(n_mb, 1) for k, v in stats_sum.items()}
         out.update(lag_stats.summary())
         out.update({"losses/skipped_updates": float(self.skipped_updates),

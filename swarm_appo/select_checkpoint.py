@@ -1,7 +1,7 @@
 """Pick a run's final policy by evaluation, on episodes the reported evaluation never flies::
 
     python -m swarm_appo.select_checkpoint --run runs/NAME [--last K] [--episodes 25] [--scenarios NAME,...]
-        [--workers N] [--seed S] [--no-averages]
+        [--workers N] [--seed S] [--no-averages] [--no-ema]
     python -m swarm_appo.evaluate --checkpoint runs/NAME/checkpoints/selected.pt      # the reported numbers
 
 Why: the policy's success rate swings by 15-30 points between checkpoints late in a run (benchmarks/RESULTS.md,
@@ -10,9 +10,10 @@ run's kept checkpoints (``runner.keep_checkpoints``; the last ``--last`` of them
 episodes in the evaluation environment (no training aids, mean actions), and so do the averages of the last j of
 them (j = 2..K: the mean of their weights, the observation statistics of the newest; ``--no-averages`` leaves them
 out): late in a run, with a small lr and a critic that explains little, Adam's steps wander about a good policy,
-and their mean can be better than any one of them. The best candidate is written, atomically, to
-``checkpoints/selected.pt`` (a copy of the file, or the averaged policy as a policy-only checkpoint) and the
-scores to ``selection.json``.
+and their mean can be better than any one of them. A run trained with ``algo.weight_ema`` adds the running
+averages saved in its newest checkpoint (one per horizon; ``swarm_appo.weight_ema``). The best candidate is
+written, atomically, to ``checkpoints/selected.pt`` (a copy of the file, or the averaged policy as a policy-only
+checkpoint) and the scores to ``selection.json``.
 
 Ranking: the paper's Suc (higher), then Col (fewer), then Dist (smaller), each the mean over the validation
 episodes. The validation episodes are seeded by ``validation_seed`` (the run's seed + 2,000,029), apart from
@@ -44,6 +45,7 @@ class Candidate:
     step: int  # agent steps (of the newest checkpoint in an average)
     scores: Dict[str, float]  # table metric -> mean over the validation episodes (unscaled: Suc as a share)
     averaged: int = 1  # how many checkpoints' weights it is the mean of
+    kind: str = "checkpoint"  # "checkpoint" (a file as saved), "mean" (of the last j) or "ema" (algo.weight_ema)
 
 
 def average_weights(states: Sequence[Dict], parameters: Sequence[str]) -> Dict:
@@ -65,22 +67,29 @@ def rank_key(scores: Dict[str, float]):
 
 def best_of(candidates: Sequence[Candidate]) -> Candidate:
     """The best candidate by ``rank_key``; a tie goes to the later checkpoint (more training), then to the
-    plain checkpoint over an average."""
+    plain checkpoint over an average (of checkpoints, or a running one)."""
     if not candidates:
         raise ValueError("no candidates to select from")
-    return min(candidates, key=lambda c: (rank_key(c.scores), -c.step, c.averaged))
+    return min(candidates, key=lambda c: (rank_key(c.scores), -c.step, c.averaged, c.kind != "checkpoint"))
+
+
+def ema_label(horizon: float) -> str:
+    return f"EMA over {horizon:,.0f} agent steps"
 
 
 def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], episodes: int, seed: Optional[int],
-                      workers: Optional[int], progress: bool = False, averages: bool = True):
-    """(candidates, their specs, scenarios, seed): every checkpoint, and with ``averages`` the mean of the last j
-    of them for j = 2..len(paths), flown on the same validation episodes."""
+                      workers: Optional[int], progress: bool = False, averages: bool = True, emas: bool = True):
+    """(candidates, their specs, scenarios, seed): every checkpoint, with ``averages`` the mean of the last j
+    of them for j = 2..len(paths), and with ``emas`` the weight averages (algo.weight_ema) of the newest checkpoint,
+    flown on the same validation episodes."""
     import dataclasses
 
     import numpy as np
 
     from swarm_appo import evaluation as ev
+    from swarm_appo.checkpoint import TrainingState
     from swarm_appo.eval_tables import METRICS
+    from swarm_appo.weight_ema import STATE_KEY, averaged_model_state
 
     specs = ev.load_policy_specs(list(paths))
     n = specs[-1].env.num_agents
@@ -96,6 +105,14 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
             specs.append(dataclasses.replace(newest, label=f"mean of the last {j}", weights=weights,
                                              source=f"mean of the last {j}"))
             averaged.append(j)
+    kinds = ["checkpoint"] * len(paths) + ["mean"] * (len(specs) - len(paths))
+    ema_state = TrainingState.load(paths[-1]).learner.get(STATE_KEY) if emas else None
+    for i, horizon in enumerate(ema_state["horizons"] if ema_state else []):
+        newest = specs[len(paths) - 1]
+        specs.append(dataclasses.replace(newest, label=ema_label(horizon), source=ema_label(horizon),
+                                         weights=averaged_model_state(newest.weights, ema_state, i)))
+        averaged.append(1)
+        kinds.append("ema")
     seed = validation_seed(specs[-1].seed) if seed is None else int(seed)
     tasks = ev.plan_tasks(specs, [n], names, episodes, episodes, seed, deterministic=True, pictures=False)
     results = ev.run_tasks(tasks, specs, workers, progress=progress)
@@ -103,13 +120,13 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
     for p, spec in enumerate(specs):
         flown = [e for r in results if r.task.policy == p for e in r.episodes]
         scores = {m: float(np.mean([METRICS[m].value(e) for e in flown])) for m, _ in RANKING}
-        candidates.append(Candidate(spec.source, spec.step, scores, averaged[p]))
+        candidates.append(Candidate(spec.source, spec.step, scores, averaged[p], kinds[p]))
     return candidates, specs, names, seed
 
 
 def select(run_dir: str, last: Optional[int] = None, episodes: int = 25, scenarios: Optional[Sequence[str]] = None,
            seed: Optional[int] = None, workers: Optional[int] = 0, progress: bool = False,
-           averages: bool = True) -> dict:
+           averages: bool = True, emas: bool = True) -> dict:
     """Score the run's kept checkpoints, copy the best to ``checkpoints/selected.pt`` and write
     ``selection.json`` (both atomically). Returns the selection record."""
     from swarm_appo.atomic import atomic_write_bytes
@@ -125,22 +142,24 @@ def select(run_dir: str, last: Optional[int] = None, episodes: int = 25, scenari
     if episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     candidates, specs, names, seed = score_checkpoints([str(p) for p in paths], scenarios, episodes, seed, workers,
-                                                       progress, averages)
+                                                       progress, averages, emas)
     best = best_of(candidates)
     target = checkpoint_dir(run_dir) / SELECTED_NAME
-    if best.averaged == 1:
+    if best.kind == "checkpoint":
         atomic_write_bytes(target, Path(best.path).read_bytes())
-    else:  # a policy-only checkpoint of the averaged weights, with the newest checkpoint's config and steps
+    else:  # a policy-only checkpoint of the averaged weights (a checkpoint mean or a running average), with the
+        # newest checkpoint's config and steps
         newest = TrainingState.load(paths[-1])
         state = TrainingState(learner={"model": specs[candidates.index(best)].weights},
                               agent_steps=newest.agent_steps, config=newest.config)
         write_checkpoint_file(target, state.payload(), newest.agent_steps)
     record = {
-        "selected": Path(best.path).name, "selected_step": best.step, "averaged": best.averaged,
+        "selected": Path(best.path).name, "selected_step": best.step, "averaged": best.averaged, "kind": best.kind,
         "copied_to": str(target),
         "ranking": [f"{m} ({'higher' if h else 'lower'} is better)" for m, h in RANKING],
         "scenarios": names, "episodes": episodes, "seed": seed, "deterministic": True,
-        "candidates": [{"checkpoint": Path(c.path).name, "step": c.step, "averaged": c.averaged, **c.scores}
+        "candidates": [{"checkpoint": Path(c.path).name, "step": c.step, "averaged": c.averaged, "kind": c.kind,
+                        **c.scores}
                        for c in candidates],
     }
     atomic_write_bytes(Path(run_dir) / SELECTION_FILE, (json.dumps(record, indent=2) + "\n").encode())
@@ -172,6 +191,8 @@ def build_parser():
     p.add_argument("--workers", type=int, default=None,
                    help="Ray actors, one core each (default: all cores); 0 = in this process")
     p.add_argument("--no-averages", action="store_true", help="only the checkpoints, not the means of the last j")
+    p.add_argument("--no-ema", action="store_true", help="leave out the weight EMAs (algo.weight_ema) of the newest "
+                   "checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -189,7 +210,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     torch.set_num_threads(1)  # one core per task, as in swarm_appo.evaluate
     try:
         record = select(args.run, args.last, args.episodes, args.scenarios.split(",") if args.scenarios else None,
-                        args.seed, args.workers, progress=not args.no_progress, averages=not args.no_averages)
+                        args.seed, args.workers, progress=not args.no_progress, averages=not args.no_averages,
+                        emas=not args.no_ema)
     except (ValueError, FileNotFoundError, CheckpointCorruptError) as exc:
         p.error(str(exc))
     finally:
