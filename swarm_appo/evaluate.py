@@ -14,6 +14,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+EPISODES_PER_TASK = 25  # default chunk: episodes flown together, seeded per chunk (also select_checkpoint's)
+
 
 def __getattr__(name: str):
     """Library names (``swarm_appo.evaluation``) through this module, loaded on first use."""
@@ -53,7 +55,7 @@ def build_parser():
                         "if that exists: earlier evaluations are kept)")
     p.add_argument("--stochastic", action="store_true", help="sample actions instead of the mean action")
     p.add_argument("--random-baseline", action="store_true", help="add uniformly random actions as a policy")
-    p.add_argument("--episodes-per-task", type=int, default=25,
+    p.add_argument("--episodes-per-task", type=int, default=EPISODES_PER_TASK,
                    help="episodes flown together in one environment (one batched forward per step)")
     p.add_argument("--no-pictures", action="store_true", help="no trajectory pictures")
     p.add_argument("--wandb-mode", default="offline", choices=("offline", "online", "disabled"))

@@ -18,8 +18,10 @@ checkpoint) and the scores to ``selection.json``.
 Ranking: the paper's Suc (higher), then Col (fewer), then Dist (smaller), each the mean over the validation
 episodes. The validation episodes are seeded by ``validation_seed`` (the run's seed + 2,000,029), apart from
 training's and from the evaluation's (``default_eval_seed``: + 1,000,003), so the reported numbers of the
-selected checkpoint are not the numbers it was selected on. ``selected.pt`` is not a ``ckpt_*`` file: resuming
-the run still starts from its latest checkpoint.
+selected checkpoint are not the numbers it was selected on. Episodes are chunked and seeded as
+``swarm_appo.evaluate`` flies them: ``--seed`` with the evaluation's seed scores every candidate on the very
+episodes the evaluation command reports (a diagnostic: then the choice has seen them). ``selected.pt`` is not a
+``ckpt_*`` file: resuming the run still starts from its latest checkpoint.
 """
 from __future__ import annotations
 
@@ -89,6 +91,7 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
     from swarm_appo import evaluation as ev
     from swarm_appo.checkpoint import TrainingState
     from swarm_appo.eval_tables import METRICS
+    from swarm_appo.evaluate import EPISODES_PER_TASK
     from swarm_appo.weight_ema import STATE_KEY, averaged_model_state
 
     specs = ev.load_policy_specs(list(paths))
@@ -114,7 +117,8 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
         averaged.append(1)
         kinds.append("ema")
     seed = validation_seed(specs[-1].seed) if seed is None else int(seed)
-    tasks = ev.plan_tasks(specs, [n], names, episodes, episodes, seed, deterministic=True, pictures=False)
+    # chunked as swarm_appo.evaluate chunks (episodes seeded per chunk): on the same seed, the same episodes
+    tasks = ev.plan_tasks(specs, [n], names, episodes, EPISODES_PER_TASK, seed, deterministic=True, pictures=False)
     results = ev.run_tasks(tasks, specs, workers, progress=progress)
     candidates = []
     for p, spec in enumerate(specs):

@@ -158,3 +158,26 @@ def torch_allclose(a, b):
     import torch
 
     return torch.allclose(a.double(), b.double(), rtol=1e-6, atol=1e-7)
+
+
+def test_on_the_evaluations_seed_the_scores_are_the_evaluation_commands_numbers(tmp_path, monkeypatch):
+    # several chunks of episodes (seeded per chunk as swarm_appo.evaluate seeds them): chunk size 2, 5 episodes
+    monkeypatch.setattr(evaluate, "EPISODES_PER_TASK", 2)
+    run = untrained_checkpoint(tmp_path, "r", OVERRIDES, TINY_OPTIONS["deepsets"], seed=1)
+    seed = 77
+    record = sel.select(str(run), episodes=5, seed=seed, workers=0)
+    out = tmp_path / "eval"
+    scenario, = record["scenarios"]  # the training scenario
+    assert evaluate.main(["--checkpoint", str(run), "--episodes", "5", "--episodes-per-task", "2", "--seed",
+                          str(seed), "--scenarios", scenario, "--workers", "0", "--out", str(out), "--no-pictures",
+                          "--wandb-mode", "disabled", "--no-progress"]) == 0
+    episodes = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
+    assert len(episodes) == 5 and len({e["task_seed"] for e in episodes}) == 3
+    candidate, = record["candidates"]
+    for m in ("suc", "col", "dist"):
+        assert candidate[m] == pytest.approx(float(np.mean([METRICS[m].value(e) for e in episodes])), rel=1e-9,
+                                             abs=1e-12), m
+    # one chunk of 5 (the chunking before) flies other episodes: the comparison above can fail
+    monkeypatch.setattr(evaluate, "EPISODES_PER_TASK", 5)
+    other = sel.select(str(run), episodes=5, seed=seed, workers=0)["candidates"][0]
+    assert other["dist"] != pytest.approx(candidate["dist"], rel=1e-9)
