@@ -29,6 +29,9 @@ RECIPE_SECTIONS = ("env", "model", "algo")
 # paid 0, and the bonus' radius then changed nothing). Add a key here only if its value reproduces the runs
 # written before it existed.
 KEYS_ADDED_LATER = {"env.reward.goal": 0.0, "env.reward.goal_radius": 0.5, "env.reward.height": 0.0}
+# keys of the recipe sections that change what a run saves, not how it trains (the weight EMA is a read-out: the
+# trained weights are bit-identical with or without it, RESULTS.md "weight EMA ..."): never a recipe difference
+READOUT_KEYS = ("algo.weight_ema",)
 EVAL_FILE = "episodes.jsonl"
 
 
@@ -92,7 +95,8 @@ def archive_run(rd: Path, dest: Path, eval_dir: str) -> bool:
 
 def recipe_differences(planned: Mapping[str, Any], archived: Mapping[str, Any]) -> List[str]:
     """Dotted keys whose values differ between two resolved configs (``config_to_dict`` form), recipe keys only;
-    a config (either) lacking a key of ``KEYS_ADDED_LATER`` counts as holding its value there."""
+    a config (either) lacking a key of ``KEYS_ADDED_LATER`` counts as holding its value there; ``READOUT_KEYS``
+    are left out."""
     planned, archived = _with_keys_added_later(planned), _with_keys_added_later(archived)
 
     def walk(a: Any, b: Any, prefix: str) -> List[str]:
@@ -102,7 +106,8 @@ def recipe_differences(planned: Mapping[str, Any], archived: Mapping[str, Any]) 
             a, b = list(a), list(b)
         return [] if a == b else [prefix]
 
-    diffs = [d for s in RECIPE_SECTIONS for d in walk(planned.get(s, {}), archived.get(s, {}), s)]
+    diffs = [d for s in RECIPE_SECTIONS for d in walk(planned.get(s, {}), archived.get(s, {}), s)
+             if d not in READOUT_KEYS]
     pr, ar = planned.get("runner", {}), archived.get("runner", {})
     return diffs + [f"runner.{k}" for k in RECIPE_RUNNER_KEYS if pr.get(k) != ar.get(k)]
 

@@ -79,6 +79,11 @@ def test_recipe_differences_name_recipe_keys_only():
     other["runner"]["seed"] = 1
     other["model"]["symmetry"] = "se3"
     assert table1_archive.recipe_differences(base, other) == ["env.reward.pos", "model.symmetry", "runner.seed"]
+    # the weight EMA is a read-out (training is bit-identical with it): neither its value nor its absence differs
+    other["algo"]["weight_ema"] = [2000000.0]
+    assert table1_archive.recipe_differences(base, other) == ["env.reward.pos", "model.symmetry", "runner.seed"]
+    other["algo"]["lr"] = 3e-4  # ... while the algo section's training keys still count
+    assert "algo.lr" in table1_archive.recipe_differences(base, other)
 
 
 def test_a_key_added_after_a_run_was_archived_matches_only_the_value_that_run_had_in_effect():
