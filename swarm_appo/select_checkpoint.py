@@ -80,42 +80,39 @@ def ema_label(horizon: float) -> str:
 
 
 def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], episodes: int, seed: Optional[int],
-                      workers: Optional[int], progress: bool = False, averages: bool = True, emas: bool = True):
+                      workers: Optional[int], progress: bool = False, averages: bool = True,
+                      ema_state: Optional[Dict] = None):
     """(candidates, their specs, scenarios, seed): every checkpoint, with ``averages`` the mean of the last j
-    of them for j = 2..len(paths), and with ``emas`` the weight averages (algo.weight_ema) of the newest checkpoint,
-    flown on the same validation episodes."""
+    of them for j = 2..len(paths), and the running averages of ``ema_state`` (the newest checkpoint's
+    ``algo.weight_ema`` state), flown on the same validation episodes."""
     import dataclasses
 
     import numpy as np
 
     from swarm_appo import evaluation as ev
-    from swarm_appo.checkpoint import TrainingState
     from swarm_appo.eval_tables import METRICS
     from swarm_appo.evaluate import EPISODES_PER_TASK
-    from swarm_appo.weight_ema import STATE_KEY, averaged_model_state
+    from swarm_appo.weight_ema import averaged_model_state
 
     specs = ev.load_policy_specs(list(paths))
     n = specs[-1].env.num_agents
     names = list(scenarios) if scenarios else [specs[-1].env.scenario]
     names = ev.resolve_scenarios(",".join(names), [n])
     ev.check_layouts(specs, [n], names)  # the files only: a weight mean has the newest file's layout
-    averaged = [1] * len(specs)
+    kinds = [(1, "checkpoint")] * len(specs)  # (checkpoints averaged, kind) per spec
+    newest = specs[-1]  # the newest file: observation statistics and layout of every average
     if averages and len(specs) > 1:
-        files, newest = list(specs), specs[-1]
+        files = list(specs)
         parameters = [name for name, _ in newest.factory().named_parameters()]
         for j in range(2, len(files) + 1):
             weights = average_weights([s.weights for s in files[-j:]], parameters)
             specs.append(dataclasses.replace(newest, label=f"mean of the last {j}", weights=weights,
                                              source=f"mean of the last {j}"))
-            averaged.append(j)
-    kinds = ["checkpoint"] * len(paths) + ["mean"] * (len(specs) - len(paths))
-    ema_state = TrainingState.load(paths[-1]).learner.get(STATE_KEY) if emas else None
+            kinds.append((j, "mean"))
     for i, horizon in enumerate(ema_state["horizons"] if ema_state else []):
-        newest = specs[len(paths) - 1]
         specs.append(dataclasses.replace(newest, label=ema_label(horizon), source=ema_label(horizon),
                                          weights=averaged_model_state(newest.weights, ema_state, i)))
-        averaged.append(1)
-        kinds.append("ema")
+        kinds.append((1, "ema"))
     seed = validation_seed(specs[-1].seed) if seed is None else int(seed)
     # chunked as swarm_appo.evaluate chunks (episodes seeded per chunk): on the same seed, the same episodes
     tasks = ev.plan_tasks(specs, [n], names, episodes, EPISODES_PER_TASK, seed, deterministic=True, pictures=False)
@@ -124,7 +121,7 @@ def score_checkpoints(paths: Sequence[str], scenarios: Optional[Sequence[str]], 
     for p, spec in enumerate(specs):
         flown = [e for r in results if r.task.policy == p for e in r.episodes]
         scores = {m: float(np.mean([METRICS[m].value(e) for e in flown])) for m, _ in RANKING}
-        candidates.append(Candidate(spec.source, spec.step, scores, averaged[p], kinds[p]))
+        candidates.append(Candidate(spec.source, spec.step, scores, *kinds[p]))
     return candidates, specs, names, seed
 
 
@@ -135,6 +132,7 @@ def select(run_dir: str, last: Optional[int] = None, episodes: int = 25, scenari
     ``selection.json`` (both atomically). Returns the selection record."""
     from swarm_appo.atomic import atomic_write_bytes
     from swarm_appo.checkpoint import TrainingState, checkpoint_dir, list_checkpoints, write_checkpoint_file
+    from swarm_appo.weight_ema import STATE_KEY as EMA_STATE_KEY
 
     paths = list_checkpoints(run_dir)
     if not paths:
@@ -145,15 +143,16 @@ def select(run_dir: str, last: Optional[int] = None, episodes: int = 25, scenari
         paths = paths[-last:]
     if episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
+    newest = TrainingState.load(paths[-1])  # read once: its running averages, and the config of an averaged policy
     candidates, specs, names, seed = score_checkpoints([str(p) for p in paths], scenarios, episodes, seed, workers,
-                                                       progress, averages, emas)
+                                                       progress, averages,
+                                                       newest.learner.get(EMA_STATE_KEY) if emas else None)
     best = best_of(candidates)
     target = checkpoint_dir(run_dir) / SELECTED_NAME
     if best.kind == "checkpoint":
         atomic_write_bytes(target, Path(best.path).read_bytes())
     else:  # a policy-only checkpoint of the averaged weights (a checkpoint mean or a running average), with the
         # newest checkpoint's config and steps
-        newest = TrainingState.load(paths[-1])
         state = TrainingState(learner={"model": specs[candidates.index(best)].weights},
                               agent_steps=newest.agent_steps, config=newest.config)
         write_checkpoint_file(target, state.payload(), newest.agent_steps)
