@@ -25,10 +25,11 @@ RECIPE_RUNNER_KEYS = ("seed", "serial", "num_workers", "envs_per_worker", "max_f
                       "total_agent_steps", "precision", "inference_precision", "init_checkpoint")
 RECIPE_SECTIONS = ("env", "model", "algo")
 # recipe keys added after runs were archived, with the value every run before them had in effect: an archived
-# config without one of them counts as having this value (the goal bonus and the height term did not exist: they
-# paid 0, and the bonus' radius then changed nothing). Add a key here only if its value reproduces the runs
-# written before it existed.
-KEYS_ADDED_LATER = {"env.reward.goal": 0.0, "env.reward.goal_radius": 0.5, "env.reward.height": 0.0}
+# config without one of them counts as having this value (the goal bonus and the height and centre terms did not
+# exist: they paid 0, and the bonus' radius then changed nothing). Add a key here only if its value reproduces the
+# runs written before it existed.
+KEYS_ADDED_LATER = {"env.reward.goal": 0.0, "env.reward.goal_radius": 0.5, "env.reward.height": 0.0,
+                    "env.reward.centre": 0.0}
 # keys of the recipe sections that change what a run saves, not how it trains (the weight EMA is a read-out: the
 # trained weights are bit-identical with or without it, RESULTS.md "weight EMA ..."): never a recipe difference
 READOUT_KEYS = ("algo.weight_ema",)

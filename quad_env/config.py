@@ -16,7 +16,8 @@ COLLISION_FORMS = ("paper", "pairwise")
 # The reward terms: the one list. Order of the kernels' ``terms`` rows (``quad_env.params.T_*``), of
 # ``VecQuadEnv.reward_terms`` and of the accumulator columns; a term's coefficient is the RewardConfig field of
 # its name. The kernel writes all but "crash", which VecQuadEnv adds (floor contacts) and must stay last.
-REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "goal", "height", "crash")
+REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action", "floor", "tilt", "goal", "height", "centre",
+                "crash")
 
 
 @dataclass
@@ -61,6 +62,12 @@ class RewardConfig:
     distance to the goal alone (times dt). Eight drones sharing one goal hover as a flat ring, and a ring lifted
     by h keeps each drone at sqrt(r^2 + h^2) of the goal: c1 charges the swarm's height error only at second order
     (README, "The quality goal"); this term charges it at first order without pulling the ring together."""
+    centre: float = 0.0
+    """Shaping, not in the paper (0 = the paper's reward): weight of -||mean_j (x_j - x_j^d)||, the swarm's mean
+    offset from its goals (times dt), the same for every drone of the swarm. Drones sharing one goal hover as a ring,
+    and c1 charges the ring's centre offset c only at second order (about c^2 / 2r per drone); this term charges it
+    at first order, and it does not pull the drones together: spreading out about the goal costs nothing here
+    (README, "The quality goal"). Zero whenever every drone is at its own goal, whatever the scenario."""
     crash: float = 0.0
     """Shaping, not in the paper (0 = the paper's reward): penalty per new floor contact (not times dt);
     the cost of a crash when ``env.respawn_on_floor`` puts the drone straight back in the air."""

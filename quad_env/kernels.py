@@ -45,8 +45,8 @@ import numpy as np
 
 from quad_env.jit_cache import njit  # numba's njit, cached under the sources' hash
 from quad_env.params import (
-    F_ARM, F_C_ACTION, F_C_COLL, F_C_FLOOR, F_C_GOAL, F_C_HEIGHT, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX, F_COLL_DIST,
-    F_COLL_KICK, F_COLL_REST,
+    F_ARM, F_C_ACTION, F_C_CENTRE, F_C_COLL, F_C_FLOOR, F_C_GOAL, F_C_HEIGHT, F_C_TILT, F_C_OMEGA, F_C_POS, F_C_PROX,
+    F_COLL_DIST, F_COLL_KICK, F_COLL_REST,
     F_CTRL_DT, F_DRAG, F_DT, F_DW_ACC, F_DW_LEN, F_DW_RAD, F_FLOOR_Z, F_GRAV, F_IXX, F_IYY, F_IZZ, F_KTAU,
     F_MASS, F_MOTOR_GAIN, F_NOISE_OMEGA, F_NOISE_POS, F_NOISE_VEL, F_OMEGA_MAX, F_OU_SIGMA, F_OU_THETA,
     F_PROX_DIST, F_ROOM_H, F_ROOM_HALF, F_SENSE_R, F_TMAX, F_WALL_REST, I_COLL_KICK, I_DOWNWASH, I_EP_STEPS,
@@ -54,7 +54,8 @@ from quad_env.params import (
     I_TAIL1_STEPS, I_TAIL3_STEPS, I_TAIL_STEPS, I_THRUST_NOISE, KERNEL_TERMS, F_C_OBST, F_OBST_CELL, F_OBST_CONTACT_R,
     COLL_FORM_PAPER, I_COLL_FORM,
     F_OBST_LOOKUP_ORIGIN, F_OBST_ORIGIN, F_OBST_R, F_OBST_SDF_MAX, I_OBST_CELLS, I_OBST_LOOKUP, I_OBSTACLES,
-    REWARD_TERMS, SDF_SPACING, T_ACTION, T_COLLISION, T_FLOOR, T_GOAL, T_HEIGHT, T_OMEGA, T_POS, T_PROXIMITY, T_TILT,
+    REWARD_TERMS, SDF_SPACING, T_ACTION, T_CENTRE, T_COLLISION, T_FLOOR, T_GOAL, T_HEIGHT, T_OMEGA, T_POS, T_PROXIMITY,
+    T_TILT,
 )
 
 from quad_env.rng import normal_from, normal_pair, uniform
@@ -631,24 +632,27 @@ def _obstacle_field_scan(e, x, y, obst, fp, ip, row, start):
 def reward_coefficients(fp, ip):
     """The reward's per-step weights (times the control dt where the term is per step), read once per swarm:
     (c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, d_p, proximity over the observed
-    neighbours only, c_goal, goal radius, c_height)."""
+    neighbours only, c_goal, goal radius, c_height, c_centre)."""
     dt = fp[F_CTRL_DT]
     return (fp[F_C_POS] * dt, fp[F_C_COLL], fp[F_C_PROX] * dt, fp[F_C_OMEGA] * dt, fp[F_C_ACTION] * dt,
             fp[F_C_FLOOR] * dt, fp[F_C_TILT] * dt, fp[F_FLOOR_Z], fp[F_C_OBST], fp[F_PROX_DIST],
-            ip[I_COLL_FORM] == COLL_FORM_PAPER, fp[F_C_GOAL] * dt, fp[F_GOAL_R], fp[F_C_HEIGHT] * dt)
+            ip[I_COLL_FORM] == COLL_FORM_PAPER, fp[F_C_GOAL] * dt, fp[F_GOAL_R], fp[F_C_HEIGHT] * dt,
+            fp[F_C_CENTRE] * dt)
 
 
 @njit(cache=True, inline="always")
-def reward_terms(dist, z, dz, wx, wy, wz, u0, u1, u2, u3, r_zz, coll_pen, new_obst, prox, near, coef):
+def reward_terms(dist, z, dz, wx, wy, wz, u0, u1, u2, u3, r_zz, coll_pen, new_obst, prox, near, centre, coef):
     """One drone's reward terms from scalars of its true state (not the noisy observation), in the order of
     ``REWARD_TERMS`` (all but "crash"): ``dist`` to goal, height ``z`` and its offset ``dz`` = z - z^d, body rates
     ``w*``, raw action ``u*`` (clipped here), ``r_zz`` = R[2, 2] (cos tilt), its new-contact penalty count
     ``coll_pen`` and new obstacle contacts ``new_obst``, and its proximity sums: ``prox`` over every other drone
-    ("pairwise" form) and ``near`` over its observed neighbours ("paper" form); ``coef``: the swarm's
+    ("pairwise" form) and ``near`` over its observed neighbours ("paper" form), the norm ``centre`` of the swarm's
+    mean offset from its goals (the same for every drone); ``coef``: the swarm's
     ``reward_coefficients``. Scalars only: array arguments would cost reference counting per drone.
     A new term: its name in ``REWARD_TERMS``, its formula here, its weight in ``reward_coefficients``, its float64
     twin in ``quad_env.reference``, its coefficient in ``RewardConfig`` (packed by ``pack_params``)."""
-    c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, dp, prox_nb, c_goal, goal_r, c_h = coef
+    (c_pos, c_coll, c_prox, c_omega, c_act, c_floor, c_tilt, floor_z, c_obst, dp, prox_nb, c_goal, goal_r, c_h,
+     c_c) = coef
     u0 = min(max(u0, -1.0), 1.0)
     u1 = min(max(u1, -1.0), 1.0)
     u2 = min(max(u2, -1.0), 1.0)
@@ -662,7 +666,8 @@ def reward_terms(dist, z, dz, wx, wy, wz, u0, u1, u2, u3, r_zz, coll_pen, new_ob
     r_tilt = -c_tilt * (1.0 - r_zz)
     r_goal = c_goal if dist < goal_r else 0.0
     r_height = -c_h * abs(dz)
-    return r_pos, r_coll, r_prox, r_omega, r_act, r_floor, r_tilt, r_goal, r_height
+    r_centre = -c_c * centre
+    return r_pos, r_coll, r_prox, r_omega, r_act, r_floor, r_tilt, r_goal, r_height, r_centre
 
 
 @njit(cache=True)
@@ -694,6 +699,14 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
     use_obst = ip[I_OBSTACLES] != 0
     field_start = mask_start + k_slots
     coef = reward_coefficients(fp, ip)  # once per swarm, not per drone
+    centre = 0.0  # ||mean_j (x_j - x_j^d)||: the swarm's offset from its goals, for the "centre" term
+    if with_reward and coef[14] != 0.0:
+        mx, my, mz = 0.0, 0.0, 0.0
+        for a in range(n_agents):
+            mx += pos[base + a, 0] - goal[base + a, 0]
+            my += pos[base + a, 1] - goal[base + a, 1]
+            mz += pos[base + a, 2] - goal[base + a, 2]
+        centre = np.sqrt(mx * mx + my * my + mz * mz) / n_agents
     dist_sum = 0.0
     for a in range(n_agents):
         i = base + a
@@ -795,11 +808,11 @@ def observe_swarm(e, pos, vel, rot, omega, goal, action, coll_pen, new_obst, pro
                         near += 1.0 - np.sqrt(nb_d2[k]) / dp
             r = reward_terms(dist, zi, gz, omega[i, 0] * 1.0, omega[i, 1] * 1.0, omega[i, 2] * 1.0, action[i, 0] * 1.0,
                              action[i, 1] * 1.0, action[i, 2] * 1.0, action[i, 3] * 1.0, rot[i, 2, 2] * 1.0,
-                             coll_pen[a], new_obst[a], prox[a], near, coef)
+                             coll_pen[a], new_obst[a], prox[a], near, centre, coef)
             terms[T_POS, i], terms[T_COLLISION, i], terms[T_PROXIMITY, i] = r[0], r[1], r[2]
             terms[T_OMEGA, i], terms[T_ACTION, i], terms[T_FLOOR, i], terms[T_TILT, i] = r[3], r[4], r[5], r[6]
-            terms[T_GOAL, i], terms[T_HEIGHT, i] = r[7], r[8]
-            rew[i] = r[0] + r[1] + r[2] + r[3] + r[4] + r[5] + r[6] + r[7] + r[8]  # (this order: bit-reproducible)
+            terms[T_GOAL, i], terms[T_HEIGHT, i], terms[T_CENTRE, i] = r[7], r[8], r[9]
+            rew[i] = r[0] + r[1] + r[2] + r[3] + r[4] + r[5] + r[6] + r[7] + r[8] + r[9]  # (this order: reproducible)
     return dist_sum / n_agents
 
 

@@ -58,7 +58,8 @@ F_C_TILT = 43
 F_C_GOAL = 44
 F_GOAL_R = 45  # radius of the "goal" bonus, m
 F_C_HEIGHT = 46
-NUM_F = 47
+F_C_CENTRE = 47
+NUM_F = 48
 
 # ---------------------------------------------------------------- int parameters (int64 [NUM_I])
 I_N = 0  # drones per swarm
@@ -99,6 +100,7 @@ T_FLOOR = REWARD_TERMS.index("floor")
 T_TILT = REWARD_TERMS.index("tilt")
 T_GOAL = REWARD_TERMS.index("goal")
 T_HEIGHT = REWARD_TERMS.index("height")
+T_CENTRE = REWARD_TERMS.index("centre")
 T_CRASH = REWARD_TERMS.index("crash")
 KERNEL_TERMS = T_CRASH  # the step kernel writes rows [0, KERNEL_TERMS); "crash" (the last) is VecQuadEnv's
 
@@ -149,6 +151,7 @@ def pack_params(cfg: EnvConfig, obs_dim: int, noise: bool = True):
     f[F_C_GOAL] = r.goal
     f[F_GOAL_R] = r.goal_radius
     f[F_C_HEIGHT] = r.height
+    f[F_C_CENTRE] = r.centre
     f[F_OBST_ORIGIN] = -0.5 * cfg.obstacle_grid_cells * cfg.obstacle_cell_size
     f[F_OBST_CELL] = cfg.obstacle_cell_size
     f[F_OBST_R] = 0.5 * cfg.obstacle_diameter

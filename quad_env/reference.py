@@ -249,6 +249,7 @@ def reference_step_obstacles(state: Dict[str, np.ndarray], actions: np.ndarray, 
         "tilt": -rc.tilt * ctrl_dt * (1.0 - rot[:, 2, 2]),
         "goal": rc.goal * ctrl_dt * (np.linalg.norm(pos - goal, axis=1) < rc.goal_radius),
         "height": -rc.height * ctrl_dt * np.abs(pos[:, 2] - goal[:, 2]),
+        "centre": np.repeat(-rc.centre * ctrl_dt * np.linalg.norm((pos - goal).reshape(E, N, 3).mean(1), axis=1), N),
     }
     terms = np.stack([formulas[name] for name in REWARD_TERMS[:KERNEL_TERMS]])
     new_state = dict(pos=pos, vel=vel, rot=rot, omega=omega, motor=motor, goal=goal)

@@ -36,7 +36,8 @@ import numpy as np
 from quad_env.params import REWARD_TERMS
 
 PAPER_REWARD_TERMS = ("pos", "collision", "proximity", "omega", "action")  # the paper's c1..c5
-SHAPING_REWARD_TERMS = tuple(t for t in REWARD_TERMS if t not in PAPER_REWARD_TERMS)  # floor, tilt, goal, height, crash
+# floor, tilt, goal, height, centre, crash
+SHAPING_REWARD_TERMS = tuple(t for t in REWARD_TERMS if t not in PAPER_REWARD_TERMS)
 
 
 @dataclass(frozen=True)
@@ -72,8 +73,9 @@ METRICS: Dict[str, Metric] = {
                   "action)"),
     "shaping": Metric("Shaping", "reward_shaping", tuple(f"rew_{t}" for t in SHAPING_REWARD_TERMS), 1.0, 2, True,
                       "reward_shaping", "per-agent episode sum of the training-only shaping terms (floor, tilt, "
-                      "goal, height, crash), not in Rew", markdown="nonzero",
-                      zero_if_absent=("rew_goal", "rew_height")),  # terms added after the first evaluation files
+                      "goal, height, centre, crash), not in Rew", markdown="nonzero",
+                      # terms added after the first evaluation files
+                      zero_if_absent=("rew_goal", "rew_height", "rew_centre")),
     "dist": Metric("Dist", "dist", ("dist_last_5s",), 1.0, 2, False, "dist",
                    "Dist: mean distance of a drone to its goal over the last 5 s of the episode (m)"),
     "dist_final": Metric("Dist end", "dist_final", ("dist_final",), 1.0, 2, False, "dist_final",

@@ -93,7 +93,7 @@ def test_a_key_added_after_a_run_was_archived_matches_only_the_value_that_run_ha
                "runner": {"seed": 0}}
     archived = {"env": {"reward": {"pos": 0.5}}, "model": {}, "algo": {}, "runner": {"seed": 0}}
     assert table1_archive.KEYS_ADDED_LATER == {"env.reward.goal": 0.0, "env.reward.goal_radius": 0.5,
-                                               "env.reward.height": 0.0}
+                                               "env.reward.height": 0.0, "env.reward.centre": 0.0}
     assert table1_archive.recipe_differences(planned, archived) == []
     assert "goal" not in archived["env"]["reward"]  # the archived config itself is not changed
     planned["env"]["reward"].update(goal=0.5, goal_radius=0.3)

@@ -58,7 +58,7 @@ CASES = [
     dict(num_agents=5, num_neighbors=3, neighbor_obs="full"),
     dict(num_agents=5, num_neighbors=6, neighbor_obs="pos_vel", sensing_radius=0.5),
     dict(num_agents=6, num_neighbors=2, neighbor_obs="full", drag_coeff=0.02, downwash=False,
-         reward=dict(floor=1.5, tilt=0.8, goal=1.2, goal_radius=2.0, height=0.7)),  # the optional shaping terms
+         reward=dict(floor=1.5, tilt=0.8, goal=1.2, goal_radius=2.0, height=0.7, centre=0.9)),  # optional shaping
 ]
 
 
@@ -156,7 +156,8 @@ def test_a_seeded_episode_sums_the_reference_terms(quiet_cfg, form):
     step the reward terms equal the float64 reference recomputed from the state before it, and the episode's
     per-term sums (``rew_<term>``) equal the sums of the reference's terms. A swapped kernel argument fails."""
     cfg = quiet_cfg(num_agents=6, num_neighbors=3, sim_dtype="float64", episode_duration=0.6,  # 60 steps: reortho
-                    reward=dict(collision_form=form, floor=1.5, tilt=0.8, goal=1.2, goal_radius=2.0, height=0.7))
+                    reward=dict(collision_form=form, floor=1.5, tilt=0.8, goal=1.2, goal_radius=2.0, height=0.7,
+                                            centre=0.9))
     E, N = 2, cfg.num_agents
     env = VecQuadEnv(cfg, num_envs=E, seed=11)
     rng = np.random.default_rng(5)

@@ -116,6 +116,30 @@ def test_height_term_charges_the_vertical_offset_alone(quiet_cfg):
         quiet_cfg(reward=dict(height=-1.0)).validate()
 
 
+def test_centre_term_charges_the_swarms_mean_offset_not_its_spread(quiet_cfg):
+    """Three hovering drones on a 0.3-m ring about one shared goal: the ring centred on it costs nothing (c1 still
+    charges each drone its 0.3 m); the same ring 0.2 m too high costs every drone -c dt 0.2 (c1: each drone only
+    sqrt(0.3^2 + 0.2^2) - 0.3 = 0.06 m more); with a goal per drone, the norm of the mean offset. Off by default."""
+    ring = 0.3 * np.array([[1.0, 0, 0], [-0.5, np.sqrt(0.75), 0], [-0.5, -np.sqrt(0.75), 0]])
+    goal = np.tile([1.0, 1.0, 2.0], (3, 1))
+
+    def terms(pos, goal, **reward):
+        return _hover_step_terms(quiet_cfg, pos, goal, reward)
+
+    centred = terms(goal + ring, goal, centre=0.8)  # one hover step moves a drone by < 1e-3 m
+    np.testing.assert_allclose(centred["centre"], 0.0, atol=1e-5)
+    np.testing.assert_allclose(centred["pos"], -0.5 * DT * 0.3, rtol=1e-3)
+    lifted = terms(goal + ring + [0, 0, 0.2], goal, centre=0.8)
+    np.testing.assert_allclose(lifted["centre"], -0.8 * DT * 0.2, rtol=1e-3)
+    np.testing.assert_allclose(lifted["pos"], -0.5 * DT * np.hypot(0.3, 0.2), rtol=1e-3)
+    pos = np.array([[0, 0, 2.0], [2, 0, 2.0], [0, 2, 2.0]])
+    own_goals = pos - np.array([[0.3, 0, 0], [0, 0, 0.6], [0.3, 0, -1.5]])  # mean offset (0.2, 0, -0.3)
+    np.testing.assert_allclose(terms(pos, own_goals, centre=0.8)["centre"], -0.8 * DT * np.hypot(0.2, 0.3), rtol=1e-3)
+    assert (terms(pos, own_goals)["centre"] == 0).all()
+    with pytest.raises(ValueError, match="env.reward.centre must be >= 0"):
+        quiet_cfg(reward=dict(centre=-1.0)).validate()
+
+
 def test_goal_radius_must_be_positive(quiet_cfg):
     with pytest.raises(ValueError, match="env.reward.goal_radius"):
         quiet_cfg(reward=dict(goal=1.0, goal_radius=0.0)).validate()

@@ -115,12 +115,13 @@ def test_rew_is_the_paper_terms_and_the_shaping_terms_are_reported_apart():
     assert not set(PAPER_REWARD_TERMS) & set(SHAPING_REWARD_TERMS)
 
 
-def test_the_goal_and_height_terms_are_shaping_and_older_episodes_without_them_count_zero():
-    with_goal = dict(episode(-3.0, 1.0, 0, 0.0, 0.0, shaping=-1.0), rew_goal=2.5, rew_height=-0.5)
-    older = episode(-3.0, 1.0, 0, 0.0, 0.0, shaping=-1.0)  # written before the goal and height terms existed
-    assert "rew_goal" not in older and "rew_height" not in older
+def test_the_goal_height_and_centre_terms_are_shaping_and_older_episodes_without_them_count_zero():
+    with_goal = dict(episode(-3.0, 1.0, 0, 0.0, 0.0, shaping=-1.0), rew_goal=2.5, rew_height=-0.5,
+                     rew_centre=-0.25)
+    older = episode(-3.0, 1.0, 0, 0.0, 0.0, shaping=-1.0)  # written before those three terms existed
+    assert "rew_goal" not in older and "rew_height" not in older and "rew_centre" not in older
     (row,) = table1_rows([EpisodeGroup("p", 8, "s", [with_goal, older])])
-    assert row.values["shaping"] == (0.0, 1.0)  # episodes: -1 + 2.5 - 0.5 and -1 + 0 + 0
+    assert row.values["shaping"] == (-0.125, 0.875)  # episodes: -1 + 2.5 - 0.5 - 0.25 and -1 + 0 + 0 + 0
     assert row.values["rew"] == (-3.0, 0.0)
     del older["rew_floor"]  # a term that always existed stays required
     with pytest.raises(KeyError, match="rew_floor"):
