@@ -23,6 +23,9 @@ velocity and attitude from ``VecQuadEnv.get_state``:
   into its vertical part c_z (world z, signed: + above the goal; median over swarms) and its horizontal length;
 - Suc: the environment's success (within 0.5 m during the whole last second, no collision).
 
+``--env-change KEY=VALUE[,KEY=VALUE]`` flies every row once more in a changed evaluation environment (top-level
+``env`` keys, e.g. ``downwash=false``: does the policy lean on an effect of the simulator it trained with?).
+
 A measurement, not a timing: it may run while other work shares the cores.
 """
 from __future__ import annotations
@@ -71,16 +74,45 @@ def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndar
     }
 
 
+def parse_env_change(spec: str) -> Dict[str, object]:
+    """``"downwash=false,downwash_accel=5"`` -> {"downwash": False, "downwash_accel": 5}: top-level ``env`` keys,
+    values read as YAML. Unknown keys raise ValueError naming them and the valid ones."""
+    import dataclasses
+
+    import yaml
+
+    from quad_env.config import EnvConfig
+
+    valid = [f.name for f in dataclasses.fields(EnvConfig)]
+    changes = {}
+    for item in spec.split(","):
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"--env-change {spec!r}: expected KEY=VALUE[,KEY=VALUE]")
+        if key not in valid:
+            raise ValueError(f"--env-change: unknown env key {key!r}; valid: {valid}")
+        changes[key] = yaml.safe_load(value)
+    return changes
+
+
 def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int] = None,
-          scenario: Optional[str] = None, num_agents: Optional[int] = None, stochastic: bool = False) -> Dict:
+          scenario: Optional[str] = None, num_agents: Optional[int] = None, stochastic: bool = False,
+          env_change: Optional[Dict[str, object]] = None) -> Dict:
     """Fly ``loaded`` (``swarm_appo.evaluation.load_checkpoint_policy``) and measure the window (module docstring);
-    ``stochastic``: sampled actions (a generator seeded with the episode seed) instead of the mean action."""
+    ``stochastic``: sampled actions (a generator seeded with the episode seed) instead of the mean action;
+    ``env_change``: top-level ``env`` keys replaced in the evaluation environment (``parse_env_change``)."""
+    import dataclasses
+
     import torch
 
     from quad_env import VecQuadEnv
     from swarm_appo.evaluation import default_eval_seed, evaluation_env, model_policy
 
     env_cfg = evaluation_env(loaded.cfg.env, num_agents=num_agents, scenario=scenario)
+    if env_change:
+        env_cfg = dataclasses.replace(env_cfg, **env_change)
+        env_cfg.validate()
     seed = default_eval_seed(loaded.cfg.runner.seed) if seed is None else seed
     policy = model_policy(loaded.model, not stochastic, torch.Generator().manual_seed(seed))
     steps, dt = env_cfg.episode_steps, env_cfg.control_dt
@@ -101,6 +133,7 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
     out = hover_stats(stack("pos"), stack("goal"), stack("rot"), stack("vel"), dt, env_cfg.num_agents)
     out.update({"run": loaded.run_name, "agent_steps": loaded.agent_steps, "scenario": env_cfg.scenario,
                 "N": env_cfg.num_agents, "episodes": episodes, "seed": seed, "stochastic": stochastic,
+                "env_change": dict(env_change or {}), "episode_s": steps * dt,
                 "success_pct": 100.0 * float(np.mean([st["success_rate"] for st in episode_stats]))})
     return out
 
@@ -138,6 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: swarm_appo.evaluate's)")
     p.add_argument("--stochastic", action="store_true",
                    help="sample actions as in training (seeded) instead of the mean action")
+    p.add_argument("--env-change", action="append", default=None, metavar="KEY=VALUE[,KEY=VALUE]",
+                   help="also fly every row with these top-level env keys changed, e.g. downwash=false; repeatable")
     p.add_argument("--append", action="store_true", help="append the table to benchmarks/RESULTS.md")
     return p
 
@@ -156,6 +191,12 @@ def main(argv=None) -> List[Tuple[str, Dict]]:
     unknown = [name for name in args.scenario or [] if name not in SCENARIOS]
     if unknown:
         parser.error(f"--scenario: unknown {unknown}; valid: {sorted(SCENARIOS)}")
+    changes = [None]
+    for spec in args.env_change or []:
+        try:
+            changes.append(parse_env_change(spec))
+        except ValueError as err:
+            parser.error(str(err))
     runs = checked_checkpoints(parser, args.checkpoint)
     started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     from swarm_appo.evaluation import load_checkpoint_policy
@@ -165,8 +206,10 @@ def main(argv=None) -> List[Tuple[str, Dict]]:
     for scenario in args.scenario or [None]:
         for n in args.num_agents or [None]:
             for label, loaded in policies:
-                results.append((label, probe(loaded, args.episodes, args.window, args.seed, scenario, n,
-                                                     args.stochastic)))
+                for change in changes:
+                    shown = label + (" [" + ", ".join(f"{k}={v}" for k, v in change.items()) + "]" if change else "")
+                    results.append((shown, probe(loaded, args.episodes, args.window, args.seed, scenario, n,
+                                                 args.stochastic, change)))
     header = section_header("hover_probe", started, argv, ["quad_env", "swarm_appo", "encoders"], load_before)
     publish("\n".join(header + ["", table(results)]), args.append)
     return results

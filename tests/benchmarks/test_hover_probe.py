@@ -3,7 +3,7 @@ offset in its own frame, a drone holding still), the table, and usage errors."""
 import numpy as np
 import pytest
 
-from benchmarks.hover_probe import hover_stats, main, table
+from benchmarks.hover_probe import hover_stats, main, parse_env_change, probe, table
 
 
 def rz(a):
@@ -86,6 +86,9 @@ def test_table_has_a_row_per_result_and_a_cell_per_column():
     (["--num-agents", "0"], "--num-agents must be >= 1"),
     (["--scenario", "static_same_goal", "--scenario", "statc_same_goal"],
      "--scenario: unknown ['statc_same_goal']; valid: ['dynamic_diff_goal',"),
+    (["--env-change", "downwash=false", "--env-change", "downwsh=false"],
+     "--env-change: unknown env key 'downwsh'; valid: ['num_agents',"),
+    (["--env-change", "downwash"], "--env-change 'downwash': expected KEY=VALUE"),
 ])
 def test_bad_arguments_are_usage_errors(tmp_path, capsys, args, message):
     with pytest.raises(SystemExit) as info:
@@ -97,3 +100,27 @@ def test_every_checkpoint_is_checked_before_any_is_flown(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         main(["--checkpoint", f"a={tmp_path}", "--checkpoint", f"b={tmp_path / 'missing'}"])
     assert info.value.code == 2 and f"{tmp_path / 'missing'} does not exist" in capsys.readouterr().err
+
+
+def test_env_changes_are_parsed_as_yaml_and_fly_in_the_changed_environment():
+    """The change reaches the environment that is flown: a 0.3-s episode cannot hold a 0.5-s window, a 0.6-s one
+    can; a value the env refuses is an error naming its key."""
+    import torch
+
+    from swarm_appo.config import load_config
+    from swarm_appo.evaluation import LoadedPolicy
+    from swarm_appo.model import model_factory
+
+    assert parse_env_change("downwash=false, drag_coeff=0.02") == {"downwash": False, "drag_coeff": 0.02}
+    cfg = load_config(None, ["env.num_agents=2", "env.num_neighbors=1", "env.scenario=static_same_goal"])
+    factory = model_factory(cfg.env.obs_layout(), cfg.model)
+    torch.manual_seed(0)
+    loaded = LoadedPolicy(cfg, factory(), factory, 0, "tiny")
+    with pytest.raises(ValueError, match="--window 0.5 s is longer than the episode \\(0.3 s\\)"):
+        probe(loaded, episodes=1, window_s=0.5, env_change={"episode_duration": 0.3})
+    out = probe(loaded, episodes=1, window_s=0.5, env_change={"episode_duration": 0.6, "downwash": False})
+    assert out["episode_s"] == pytest.approx(0.6) and out["env_change"] == {"episode_duration": 0.6, "downwash": False}
+    assert probe(loaded, episodes=1, window_s=0.5, env_change={"episode_duration": 0.7})["episode_s"] == \
+        pytest.approx(0.7)
+    with pytest.raises(ValueError, match="env.episode_duration must be > 0"):
+        probe(loaded, episodes=1, window_s=0.5, env_change={"episode_duration": -1.0})
