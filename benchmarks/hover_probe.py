@@ -21,6 +21,8 @@ velocity and attitude from ``VecQuadEnv.get_state``:
   of the ring to Suc's radius, while the paper's c1 summed over the swarm hardly changes: the mean distance of a
   ring of radius r from a point c off its centre grows only as c^2 / 4r for c in the ring's plane); c split
   into its vertical part c_z (world z, signed: + above the goal; median over swarms) and its horizontal length;
+- Col: new contacts per episode after the 1.5-s grace period (the evaluation's Col); touched: the share of drones
+  with a drone-drone contact after it (IColR);
 - Suc: the environment's success (within 0.5 m during the whole last second, no collision).
 
 ``--env-change KEY=VALUE[,KEY=VALUE]`` flies every row once more in a changed evaluation environment (top-level
@@ -134,7 +136,9 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
     out.update({"run": loaded.run_name, "agent_steps": loaded.agent_steps, "scenario": env_cfg.scenario,
                 "N": env_cfg.num_agents, "episodes": episodes, "seed": seed, "stochastic": stochastic,
                 "env_change": dict(env_change or {}), "episode_s": steps * dt,
-                "success_pct": 100.0 * float(np.mean([st["success_rate"] for st in episode_stats]))})
+                "success_pct": 100.0 * float(np.mean([st["success_rate"] for st in episode_stats])),
+                "col": float(np.mean([st["collisions_after_grace"] for st in episode_stats])),
+                "touched_pct": 100.0 * float(np.mean([st["inter_collision_rate"] for st in episode_stats]))})
     return out
 
 
@@ -142,8 +146,8 @@ def table(results: List[Tuple[str, Dict]]) -> str:
     lines = ["| run | scenario, N, episodes, seed | window (s) | Dist (m) | body offset x, y, z (m) | "
              "per-drone body offset (m) | yaw turned (deg) | speed (m/s) | path (m) | net move (m) | "
              "swarm centre offset (m) | of it: vertical, horizontal (m) | spread about it (m) | "
-             f"within {SUCCESS_RADIUS:g} m %: as flown / centred | Suc % |",
-             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
+             f"within {SUCCESS_RADIUS:g} m %: as flown / centred | Col | touched % | Suc % |",
+             "|---|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|"]
     for label, r in results:
         bx, by, bz = r["body_offset"]
         actions = ", sampled actions" if r.get("stochastic") else ""
@@ -153,7 +157,8 @@ def table(results: List[Tuple[str, Dict]]) -> str:
                      f"{r['yaw_turned_deg']:.0f} | {r['speed']:.2f} | {r['path']:.2f} | {r['net_move']:.2f} | "
                      f"{r['centre_offset']:.2f} | {r['centre_vertical']:+.2f}, {r['centre_horizontal']:.2f} | "
                      f"{r['spread']:.2f} | {r['within_pct']:.0f} / "
-                     f"{r['within_centred_pct']:.0f} | {r['success_pct']:.1f} |")
+                     f"{r['within_centred_pct']:.0f} | {r.get('col', float('nan')):.2f} | "
+                     f"{r.get('touched_pct', float('nan')):.0f} | {r['success_pct']:.1f} |")
     return "\n".join(lines)
 
 

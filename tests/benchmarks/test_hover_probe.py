@@ -71,11 +71,11 @@ def test_table_has_a_row_per_result_and_a_cell_per_column():
          "body_offset": [0.11, 0.57, -0.05], "body_offset_norm": 0.58, "yaw_turned_deg": 96.4, "speed": 0.33,
          "path": 0.97, "net_move": 0.45, "centre_offset": 0.21, "centre_vertical": -0.123,
          "centre_horizontal": 0.17, "spread": 0.36, "within_pct": 62.5,
-         "within_centred_pct": 98.75, "success_pct": 6.0}
+         "within_centred_pct": 98.75, "col": 1.234, "touched_pct": 37.5, "success_pct": 6.0}
     lines = table([("se3", r), ("none", dict(r, body_offset=[0.0, -0.01, 0.0], stochastic=True))]).splitlines()
     assert len(lines) == 4 and all(len(line.split("|")) == len(lines[0].split("|")) for line in lines)
     assert lines[2] == ("| se3 | static_diff_goal, 8, 10, 7 | 3.0 | 0.55 | +0.11, +0.57, -0.05 | 0.58 | 96 | 0.33 | "
-                        "0.97 | 0.45 | 0.21 | -0.12, 0.17 | 0.36 | 62 / 99 | 6.0 |")
+                        "0.97 | 0.45 | 0.21 | -0.12, 0.17 | 0.36 | 62 / 99 | 1.23 | 38 | 6.0 |")
     assert lines[3].startswith("| none | static_diff_goal, 8, 10, 7, sampled actions |")
     assert "+0.00, -0.01, +0.00" in lines[3]
 
@@ -120,6 +120,7 @@ def test_env_changes_are_parsed_as_yaml_and_fly_in_the_changed_environment():
         probe(loaded, episodes=1, window_s=0.5, env_change={"episode_duration": 0.3})
     out = probe(loaded, episodes=1, window_s=0.5, env_change={"episode_duration": 0.6, "downwash": False})
     assert out["episode_s"] == pytest.approx(0.6) and out["env_change"] == {"episode_duration": 0.6, "downwash": False}
+    assert out["col"] == 0 and out["touched_pct"] == 0  # a 0.6-s episode ends inside the 1.5-s grace period
     assert probe(loaded, episodes=1, window_s=0.5, env_change={"episode_duration": 0.7})["episode_s"] == \
         pytest.approx(0.7)
     with pytest.raises(ValueError, match="env.episode_duration must be > 0"):
