@@ -77,13 +77,13 @@ def hover_stats(pos: np.ndarray, goal: np.ndarray, rot: np.ndarray, vel: np.ndar
 
 
 def parse_env_change(spec: str) -> Dict[str, object]:
-    """``"downwash=false,downwash_accel=5"`` -> {"downwash": False, "downwash_accel": 5}: top-level ``env`` keys,
-    values read as YAML. Unknown keys raise ValueError naming them and the valid ones."""
+    """``"downwash=false,drag_coeff=1e-2"`` -> {"downwash": False, "drag_coeff": 0.01}: top-level ``env`` keys,
+    values read as YAML as in the trainer's overrides (``swarm_appo.config.yaml_load``: ``1e-2`` is a number).
+    Unknown keys raise ValueError naming them and the valid ones."""
     import dataclasses
 
-    import yaml
-
     from quad_env.config import EnvConfig
+    from swarm_appo.config import yaml_load
 
     valid = [f.name for f in dataclasses.fields(EnvConfig)]
     changes = {}
@@ -94,7 +94,7 @@ def parse_env_change(spec: str) -> Dict[str, object]:
             raise ValueError(f"--env-change {spec!r}: expected KEY=VALUE[,KEY=VALUE]")
         if key not in valid:
             raise ValueError(f"--env-change: unknown env key {key!r}; valid: {valid}")
-        changes[key] = yaml.safe_load(value)
+        changes[key] = yaml_load(value)
     return changes
 
 
@@ -103,18 +103,18 @@ def probe(loaded, episodes: int = 10, window_s: float = 3.0, seed: Optional[int]
           env_change: Optional[Dict[str, object]] = None) -> Dict:
     """Fly ``loaded`` (``swarm_appo.evaluation.load_checkpoint_policy``) and measure the window (module docstring);
     ``stochastic``: sampled actions (a generator seeded with the episode seed) instead of the mean action;
-    ``env_change``: top-level ``env`` keys replaced in the evaluation environment (``parse_env_change``)."""
-    import dataclasses
-
+    ``env_change``: top-level ``env`` keys replaced in the evaluation environment (``parse_env_change``), type-checked
+    and validated as a config file's would be."""
     import torch
 
     from quad_env import VecQuadEnv
+    from quad_env.config import EnvConfig
+    from swarm_appo.config import config_from_dict, config_to_dict
     from swarm_appo.evaluation import default_eval_seed, evaluation_env, model_policy
 
     env_cfg = evaluation_env(loaded.cfg.env, num_agents=num_agents, scenario=scenario)
     if env_change:
-        env_cfg = dataclasses.replace(env_cfg, **env_change)
-        env_cfg.validate()
+        env_cfg = config_from_dict({**config_to_dict(env_cfg), **env_change}, EnvConfig, "env.").validate()
     seed = default_eval_seed(loaded.cfg.runner.seed) if seed is None else seed
     policy = model_policy(loaded.model, not stochastic, torch.Generator().manual_seed(seed))
     steps, dt = env_cfg.episode_steps, env_cfg.control_dt
@@ -156,9 +156,8 @@ def table(results: List[Tuple[str, Dict]]) -> str:
                      f"{r['dist']:.2f} | {bx:+.2f}, {by:+.2f}, {bz:+.2f} | {r['body_offset_norm']:.2f} | "
                      f"{r['yaw_turned_deg']:.0f} | {r['speed']:.2f} | {r['path']:.2f} | {r['net_move']:.2f} | "
                      f"{r['centre_offset']:.2f} | {r['centre_vertical']:+.2f}, {r['centre_horizontal']:.2f} | "
-                     f"{r['spread']:.2f} | {r['within_pct']:.0f} / "
-                     f"{r['within_centred_pct']:.0f} | {r.get('col', float('nan')):.2f} | "
-                     f"{r.get('touched_pct', float('nan')):.0f} | {r['success_pct']:.1f} |")
+                     f"{r['spread']:.2f} | {r['within_pct']:.0f} / {r['within_centred_pct']:.0f} | "
+                     f"{r['col']:.2f} | {r['touched_pct']:.0f} | {r['success_pct']:.1f} |")
     return "\n".join(lines)
 
 

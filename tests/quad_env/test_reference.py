@@ -157,7 +157,7 @@ def test_a_seeded_episode_sums_the_reference_terms(quiet_cfg, form):
     per-term sums (``rew_<term>``) equal the sums of the reference's terms. A swapped kernel argument fails."""
     cfg = quiet_cfg(num_agents=6, num_neighbors=3, sim_dtype="float64", episode_duration=0.6,  # 60 steps: reortho
                     reward=dict(collision_form=form, floor=1.5, tilt=0.8, goal=1.2, goal_radius=2.0, height=0.7,
-                                            centre=0.9))
+                                centre=0.9))
     E, N = 2, cfg.num_agents
     env = VecQuadEnv(cfg, num_envs=E, seed=11)
     rng = np.random.default_rng(5)
