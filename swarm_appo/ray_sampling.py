@@ -139,10 +139,11 @@ class RaySampler:
                  rollout: int, seed: int, max_in_flight: int, cpus_per_worker: float = 1.0,
                  store_values: bool = False, precision: str = "fp32", scheduling_strategy: str = "DEFAULT",
                  ready_timeout_s: Optional[float] = None, publish_timeout_s: float = PUBLISH_TIMEOUT_S,
-                 stall_policy: StallPolicy = StallPolicy()):
+                 stall_policy: StallPolicy = StallPolicy(), max_deaths_in_a_row: int = MAX_DEATHS_IN_A_ROW):
         """``scheduling_strategy="SPREAD"`` places the actors over all nodes of a cluster; with
         ``ready_timeout_s`` the constructor waits until every actor is placed and has compiled its kernels,
-        and raises a clear error if the cluster cannot host them all in that time."""
+        and raises a clear error if the cluster cannot host them all in that time. A worker that dies
+        ``max_deaths_in_a_row`` times without delivering a fragment ends the run with its error."""
         if max_in_flight < num_workers:
             raise ValueError(f"runner.max_fragments_in_flight ({max_in_flight}) must be >= the number of "
                              f"rollout workers ({num_workers}), or some workers would never run")
@@ -152,6 +153,7 @@ class RaySampler:
         self._precision = precision
         self.publish_timeout_s = publish_timeout_s
         self.stall_policy = stall_policy
+        self.max_deaths_in_a_row = max_deaths_in_a_row
         self._remote_cls = ray.remote(num_cpus=cpus_per_worker, max_restarts=0,
                                       scheduling_strategy=scheduling_strategy)(RayRolloutWorker)
         self._store = WeightsStore.remote()
@@ -256,7 +258,7 @@ class RaySampler:
             return None
         except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
             self._deaths_in_a_row[w] += 1
-            if self._deaths_in_a_row[w] >= MAX_DEATHS_IN_A_ROW:
+            if self._deaths_in_a_row[w] >= self.max_deaths_in_a_row:
                 raise RuntimeError(f"rollout worker {w} died {self._deaths_in_a_row[w]} times in a row without "
                                    f"delivering a fragment: restarting it cannot help ({type(exc).__name__}: "
                                    f"{str(exc).strip()[-2000:]})") from exc

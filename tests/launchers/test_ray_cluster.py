@@ -169,25 +169,38 @@ def test_job_supervisors_find_this_clusters_address(cluster):
     assert cluster.gcs_address.startswith("127.0.0.1:")
 
 
-@pytest.mark.cluster
-def test_submit_spreads_rollout_actors_over_both_nodes(cluster, other_ray, run_root):
-    # A budget of training time, not of steps: a run of a few tiny fragments can end before the first one
-    # from the other node arrives (seen in CI). 30 s of training leaves every worker time to deliver, and a
-    # worker whose calls never come back (seen in about one submission in four) time to be restarted by the
-    # sampler's watchdog (after >= 10 s) and deliver.
-    done = cli(cluster, "submit", "--follow", "--log-every-s", "5", *TINY, "runner.num_workers=0",
-               "runner.total_agent_steps=1000000000", "runner.time_limit_s=30", f"runner.run_dir={run_root}",
-               "runner.name=two_nodes")
-    logs = done.stdout + done.stderr
-    assert done.returncode == 0, logs[-4000:]
-    job_id = done.stdout.splitlines()[0]
-    status = cli(cluster, "status", job_id)
-    assert f"{job_id}: SUCCEEDED" in status.stdout, status.stdout + status.stderr
+def _metrics(run_dir: Path) -> list:
+    path = run_dir / "metrics.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
+
+@pytest.mark.cluster
+def test_submit_spreads_rollout_actors_over_both_nodes_and_stop_ends_it_with_a_final_checkpoint(
+        cluster, other_ray, run_root):
+    """One submission: the rollout actors cover both nodes, fragments from both reach the learner (across
+    nodes), and `stop` ends the run through SIGTERM with a final checkpoint and its placement written.
+    (`--follow` and a job that ends by itself are covered by the evaluate test below.)"""
+    done = cli(cluster, "submit", *TINY, "runner.num_workers=0", "runner.total_agent_steps=1000000000",
+               f"runner.run_dir={run_root}", "runner.name=two_nodes")
+    assert done.returncode == 0, done.stderr[-3000:]
+    job_id = done.stdout.splitlines()[0]
     run_dir = run_root / "two_nodes"
-    assert list((run_dir / "checkpoints").glob("ckpt_*.pt")), logs[-3000:]
-    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    assert records[-1]["global_step"] >= 960 and max(r.get("charts/elapsed_s", 0) for r in records) >= 10
+    # Train until fragments from both nodes have been trained on: one fragment is one batch here (TINY), so
+    # each record's remote fraction is 0 (the learner's node) or 1 (the other). A time budget instead (30 s
+    # before) also had to cover a worker whose calls never come back (seen in about one submission in four)
+    # until the sampler's watchdog replaces it (after >= 10 s); this waits exactly as long as that takes.
+    deadline = time.monotonic() + 300  # a hang guard, not a speed limit
+    while {r.get("perf/remote_fragment_fraction") for r in _metrics(run_dir)} < {0.0, 1.0}:
+        assert time.monotonic() < deadline, cli(cluster, "logs", job_id).stdout[-4000:]
+        time.sleep(0.5)
+    stopped = cli(cluster, "stop", job_id)
+    assert stopped.returncode == 0 and f"{job_id}: STOPPED" in stopped.stdout, stopped.stdout + stopped.stderr
+    logs = cli(cluster, "logs", job_id).stdout
+    assert "checkpoint:" in logs, logs[-3000:]
+    # SIGTERM reached the trainer: it wrote a checkpoint at (or after) its last logged step, then ended
+    records = _metrics(run_dir)
+    steps = [int(p.stem.split("_")[1]) for p in (run_dir / "checkpoints").glob("ckpt_*.pt")]
+    assert steps and max(steps) >= records[-1]["global_step"] >= 128
     placement = json.loads((run_dir / "cluster.json").read_text())
     node_ids = set(cluster.node_ids)
     # 2 nodes x 2 CPUs, one CPU for the learner: three rollout actors, spread over both nodes
@@ -200,7 +213,6 @@ def test_submit_spreads_rollout_actors_over_both_nodes(cluster, other_ray, run_r
     assert sum(w["fragments"] for w in placement["rollout_workers"]) == sum(placement["fragments_per_node"].values())
     assert sum(placement["agent_steps_per_node"].values()) == records[-1]["global_step"]
     assert placement["learner"]["node_id"] in node_ids and placement["learner"]["device"] == "cpu"
-    assert any(r.get("perf/remote_fragment_fraction", 0) > 0 for r in records)
 
 
 @pytest.mark.cluster
@@ -234,26 +246,6 @@ def test_evaluate_on_an_unknown_node_lists_the_clusters_nodes(cluster):
     done = cli(cluster, "evaluate", "--node", "0123abcd", "--checkpoint", "runs/a")
     assert done.returncode == 2
     assert "--node 0123abcd is not an alive node" in done.stderr and all(n in done.stderr for n in cluster.node_ids)
-
-
-@pytest.mark.cluster
-def test_stop_ends_a_run_with_a_final_checkpoint(cluster, run_root):
-    done = cli(cluster, "submit", *TINY, "runner.total_agent_steps=1000000000", f"runner.run_dir={run_root}",
-               "runner.name=stopped")
-    assert done.returncode == 0, done.stderr[-3000:]
-    job_id = done.stdout.splitlines()[0]
-    metrics = run_root / "stopped" / "metrics.jsonl"
-    deadline = time.monotonic() + 300
-    while not (metrics.exists() and metrics.read_text().strip()):
-        assert time.monotonic() < deadline, cli(cluster, "logs", job_id).stdout[-3000:]
-        time.sleep(1)
-    stopped = cli(cluster, "stop", job_id)
-    assert stopped.returncode == 0 and f"{job_id}: STOPPED" in stopped.stdout, stopped.stdout + stopped.stderr
-    # SIGTERM reached the trainer: it wrote a checkpoint at (or after) its last logged step, then ended
-    last_step = json.loads(metrics.read_text().splitlines()[-1])["global_step"]
-    steps = [int(p.stem.split("_")[1]) for p in (run_root / "stopped" / "checkpoints").glob("ckpt_*.pt")]
-    assert steps and max(steps) >= last_step
-    assert "checkpoint:" in cli(cluster, "logs", job_id).stdout
 
 
 def _alive(pid: int) -> bool:

@@ -36,16 +36,17 @@ def random_state(rng, E, N):
                 goal=rng.uniform(-2, 2, (M, 3)))
 
 
-def kernel_step(env, state, actions, step_count, contact):
-    """Run the kernel on float64 copies with float64 output buffers, with the env config's parameters and every
-    noise source off (``pack_params(..., noise=False)``: the random streams are then never read)."""
+def kernel_step(env, state, actions, step_count, contact, out_dtype=np.float64):
+    """Run the kernel on copies of ``state`` with ``out_dtype`` output buffers (float64: compared to 1e-9), with
+    the env config's parameters and every noise source off (``pack_params(..., noise=False)``: the random streams
+    are then never read)."""
     s = {k: v.copy() for k, v in state.items()}
     M, D, E = env.num_drones, env.obs_dim, env.num_envs
     fp, ip = pack_params(env.cfg, D, noise=False)
-    ou = np.zeros((M, 4))
+    ou = np.zeros((M, 4), s["pos"].dtype)  # the simulator keeps its noise state in its own dtype
     contact = contact.copy()
     steps = step_count.copy()
-    obs, rew, terms = np.zeros((M, D)), np.zeros(M), np.zeros((KERNEL_TERMS, M))
+    obs, rew, terms = np.zeros((M, D), out_dtype), np.zeros(M, out_dtype), np.zeros((KERNEL_TERMS, M), out_dtype)
     state = SwarmState(pos=s["pos"], vel=s["vel"], rot=s["rot"], omega=s["omega"], motor=s["motor"], ou=ou,
                        goal=s["goal"], contact=contact, room_contact=np.zeros(M, np.uint8), rng=seed_streams(0, E),
                        step_count=steps)
@@ -119,7 +120,9 @@ def test_float32_state_tracks_the_reference(quiet_cfg):
     state32 = {k: v.astype(np.float32) for k, v in state.items()}
     actions = rng.uniform(-1, 1, (10, 4)).astype(np.float32)
     contact = np.zeros((2, 5, 5), np.uint8)
-    ks, kobs, _, _, _ = kernel_step(env, state32, actions, np.zeros(2, np.int64), contact)
+    # the simulator's own float32 output buffers: the kernel specialization a float32 env runs (compiled once by
+    # quad_env.warmup, not again for this test)
+    ks, kobs, _, _, _ = kernel_step(env, state32, actions, np.zeros(2, np.int64), contact, out_dtype=np.float32)
     rs, robs, _, _, _ = reference_step({k: v.astype(np.float64) for k, v in state32.items()}, actions, cfg,
                                        np.zeros(2, np.int64), contact)
     assert ks["pos"].dtype == np.float32
