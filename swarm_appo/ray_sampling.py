@@ -144,6 +144,9 @@ class RaySampler:
         ``ready_timeout_s`` the constructor waits until every actor is placed and has compiled its kernels,
         and raises a clear error if the cluster cannot host them all in that time. A worker that dies
         ``max_deaths_in_a_row`` times without delivering a fragment ends the run with its error."""
+        if max_deaths_in_a_row < 1:
+            raise ValueError(f"max_deaths_in_a_row must be >= 1 (deaths of one worker before the run ends), got "
+                             f"{max_deaths_in_a_row}")
         if max_in_flight < num_workers:
             raise ValueError(f"runner.max_fragments_in_flight ({max_in_flight}) must be >= the number of "
                              f"rollout workers ({num_workers}), or some workers would never run")

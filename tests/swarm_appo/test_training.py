@@ -313,6 +313,13 @@ class _BrokenFactory:
         raise RuntimeError("this policy cannot be built")
 
 
+def test_a_death_limit_below_one_is_refused_before_any_actor_starts(tmp_path):
+    cfg = tiny_config(tmp_path, "d0")
+    with pytest.raises(ValueError, match="max_deaths_in_a_row must be >= 1.*got 0"):
+        RaySampler(cfg.env, _BrokenFactory(), num_workers=1, envs_per_worker=1, rollout=8, seed=0,
+                   max_in_flight=1, max_deaths_in_a_row=0)
+
+
 def test_a_worker_that_dies_before_every_fragment_ends_the_run_with_its_error(tmp_path, local_ray):
     cfg = tiny_config(tmp_path, "d")
     sampler = RaySampler(cfg.env, _BrokenFactory(), num_workers=1, envs_per_worker=1, rollout=8, seed=0,
