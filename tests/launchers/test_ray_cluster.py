@@ -170,8 +170,11 @@ def test_job_supervisors_find_this_clusters_address(cluster):
 
 
 def _metrics(run_dir: Path) -> list:
+    """The run's complete metric records so far (polled while the job writes: a line without its newline yet is
+    not read)."""
     path = run_dir / "metrics.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    text = path.read_text() if path.exists() else ""
+    return [json.loads(line) for line in text[:text.rfind("\n") + 1].splitlines()]
 
 
 @pytest.mark.cluster
