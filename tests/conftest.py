@@ -1,4 +1,8 @@
 """Session-wide hooks for the whole suite."""
+import os
+import sys
+
+import pytest
 
 
 def pytest_xdist_setupnodes(config, specs):
@@ -13,3 +17,15 @@ def pytest_xdist_setupnodes(config, specs):
     start = time.perf_counter()
     codes = warm_in_parallel(jobs=min(2, len(specs)))
     print(f"\nquad_env.warmup: kernels ready in {time.perf_counter() - start:.1f} s (exit codes {codes})")
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread_per_xdist_worker():
+    """Under pytest-xdist the suite runs one process per core, so a second torch thread per process only spins
+    against the other process (the small test models wait on it far longer than they compute). Set before every
+    test: an in-process training sets its learner's threads and keeps them. Not under ``-n 0``, where one process
+    has the cores to itself."""
+    torch = sys.modules.get("torch")  # only if a test module already imported it: light tests stay light
+    if torch is not None and os.environ.get("PYTEST_XDIST_WORKER") and torch.get_num_threads() != 1:
+        torch.set_num_threads(1)
+    yield
