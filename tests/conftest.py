@@ -19,6 +19,18 @@ def pytest_xdist_setupnodes(config, specs):
     print(f"\nquad_env.warmup: kernels ready in {time.perf_counter() - start:.1f} s (exit codes {codes})")
 
 
+@pytest.fixture
+def one_torch_thread():
+    """Tiny policies on small batches: a second OpenMP thread only waits (very long on a loaded machine).
+    One thread is also what the evaluation and export commands use. Restores the thread count after the test."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(autouse=True)
 def _one_torch_thread_per_xdist_worker():
     """Under pytest-xdist the suite runs one process per core, so a second torch thread per process only spins

@@ -4,7 +4,6 @@ import json
 
 import pytest
 import yaml
-import torch
 
 from benchmarks import table1
 
@@ -14,19 +13,11 @@ TINY = ["--set", "runner.serial=true", "--set", "runner.num_workers=1", "--set",
         "--agent-steps", "768", "--episodes", "2", "--no-results", "--no-progress"]
 
 
-@pytest.fixture
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def run(tmp_path, *args):
     return table1.main(["--out", str(tmp_path / "exp"), "--figures", str(tmp_path / "fig"), *TINY, *args])
 
 
-def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_thread, capsys):
+def test_tiny_experiment_trains_evaluates_tabulates_and_resumes(tmp_path, one_torch_thread, capsys):
     rows = "deepsets/none,deepsets/se3"
     assert run(tmp_path, "--rows", rows, "--seeds", "0") == 0
     exp = tmp_path / "exp"
@@ -82,7 +73,7 @@ def test_bad_rows_and_recipe_errors_before_training(tmp_path, capsys):
     assert not (tmp_path / "exp").exists()
 
 
-def test_compare_trains_every_row_once_per_value(tmp_path, one_thread):
+def test_compare_trains_every_row_once_per_value(tmp_path, one_torch_thread):
     assert run(tmp_path, "--rows", "deepsets/none", "--seeds", "0", "--compare", "runner.precision=fp32,bf16") == 0
     runs = tmp_path / "exp" / "runs" / "static_same_goal"
     assert sorted(p.name for p in runs.iterdir()) == ["deepsets-none-precision-bf16", "deepsets-none-precision-fp32"]
@@ -94,7 +85,7 @@ def test_compare_trains_every_row_once_per_value(tmp_path, one_thread):
     assert "compared: runner.precision=fp32,bf16" in table
 
 
-def test_the_papers_other_baselines_are_rows(tmp_path, one_thread):
+def test_the_papers_other_baselines_are_rows(tmp_path, one_torch_thread):
     """rMAPPO (a preset: mlp + GRU core + central critic) and InfoMARL (an encoder) train like every other row."""
     assert run(tmp_path, "--rows", "rmappo/none,infomarl/none", "--seeds", "0") == 0
     runs = tmp_path / "exp" / "runs" / "static_same_goal"
@@ -121,7 +112,7 @@ def test_table_markdown_mean_std_over_seeds_and_best_in_bold():
     assert lines[3] == "| a/se3 | 1 | **-1.00 ± 0.00** | **90.0 ± 0.0** | - |"
 
 
-def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_thread):
+def test_a_larger_budget_trains_finished_runs_on(tmp_path, one_torch_thread):
     assert run(tmp_path, "--rows", "deepsets/none", "--seeds", "0") == 0
     rd = tmp_path / "exp" / "runs" / "static_same_goal" / "deepsets-none" / "seed0"
     assert json.loads((rd / "done.json").read_text())["agent_steps"] < 1536
@@ -161,7 +152,7 @@ def test_figure_name_tells_rows_and_seeds_apart():
     assert len(names) == 4  # another row set or seed set is another file
 
 
-def test_a_larger_budget_is_refused_for_runs_whose_lr_decays_to_their_budget(tmp_path, one_thread, capsys):
+def test_a_larger_budget_is_refused_for_runs_whose_lr_decays_to_their_budget(tmp_path, one_torch_thread, capsys):
     linear = ["--rows", "deepsets/none", "--seeds", "0", "--set", "algo.lr_schedule=linear"]
     assert run(tmp_path, *linear) == 0
     rd = tmp_path / "exp" / "runs" / "static_same_goal" / "deepsets-none" / "seed0"
@@ -188,7 +179,7 @@ def test_pooled_row_weights_every_scenario_equally_and_counts_episodes():
     assert table1.episodes_label({"r": [{"episodes": 20}], "s": [{"episodes": 50}]}) == "20-50"
 
 
-def test_select_reports_the_checkpoint_chosen_on_validation_episodes(tmp_path, one_thread, capsys):
+def test_select_reports_the_checkpoint_chosen_on_validation_episodes(tmp_path, one_torch_thread, capsys):
     # a checkpoint every update: 8 updates, the last 3 kept, all candidates
     assert run(tmp_path, "--rows", "deepsets/se3", "--seeds", "0", "--select", "--select-episodes", "2",
                "--set", "runner.checkpoint_every_updates=1") == 0

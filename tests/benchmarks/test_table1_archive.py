@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from benchmarks import table1, table1_archive
-from tests.benchmarks.test_table1 import TINY, one_thread  # noqa: F401  (the fixture)
+from tests.benchmarks.test_table1 import TINY
 
 ROWS = ["--rows", "deepsets/none", "--seeds", "0"]
 
@@ -17,7 +17,7 @@ def tables(text: str) -> str:
     return text.split("- cells:", 1)[1].split("![", 1)[0]
 
 
-def test_an_archive_rebuilds_the_table_on_a_fresh_folder_without_training(tmp_path, one_thread, monkeypatch,  # noqa: F811
+def test_an_archive_rebuilds_the_table_on_a_fresh_folder_without_training(tmp_path, one_torch_thread, monkeypatch,
                                                                           capsys):
     arc = tmp_path / "archive"
     assert table1.main(["--out", str(tmp_path / "a"), "--figures", str(tmp_path / "fig"), *TINY, *ROWS,
@@ -45,7 +45,7 @@ def test_an_archive_rebuilds_the_table_on_a_fresh_folder_without_training(tmp_pa
     assert tables((arc / "table1.md").read_text()) == first
 
 
-def test_an_archived_run_of_another_recipe_is_refused_before_anything_runs(tmp_path, one_thread, capsys):  # noqa: F811
+def test_an_archived_run_of_another_recipe_is_refused_before_anything_runs(tmp_path, one_torch_thread, capsys):
     arc = tmp_path / "archive"
     assert table1.main(["--out", str(tmp_path / "a"), "--figures", str(tmp_path / "fig"), *TINY, *ROWS,
                         "--archive", str(arc)]) == 0

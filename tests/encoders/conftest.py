@@ -1,11 +1,7 @@
 import pytest
-import torch
 
 
 @pytest.fixture(autouse=True)
-def one_thread():
+def _tiny_models_on_one_thread(one_torch_thread):
     """Tests of tiny models run fastest (and least disturbed by parallel jobs) on one thread."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
     yield
-    torch.set_num_threads(threads)
