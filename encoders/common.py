@@ -41,10 +41,12 @@ class _TanhViaFloat32(torch.autograd.Function):
 
 class Tanh(nn.Module):
     """``nn.Tanh`` with a faster path for bf16/fp16 tensors on the CPU (``runner.precision=bf16``); every other
-    dtype and device (fp32, CUDA, an exported or traced policy) runs ``torch.tanh`` itself."""
+    dtype and device (fp32, CUDA, an exported or traced policy) and torch.compile (whose generated kernel computes
+    in fp32 anyway) run ``torch.tanh`` itself."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.device.type == "cpu" and x.dtype in (torch.bfloat16, torch.float16):
+        if (x.device.type == "cpu" and x.dtype in (torch.bfloat16, torch.float16)
+                and not torch.compiler.is_compiling()):
             return _TanhViaFloat32.apply(x)
         return torch.tanh(x)
 

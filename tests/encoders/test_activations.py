@@ -62,3 +62,18 @@ def test_registry_and_mlp_use_it_under_autocast():
         ref = net[2](torch.tanh(h))
     assert out.dtype == torch.bfloat16
     assert torch.equal(out, ref)
+
+
+def test_torch_compile_sees_plain_tanh():
+    # under torch.compile the chunk loop would be unrolled per shape: the module hands the op to the compiler
+    graphs = []
+
+    def backend(gm, example_inputs):
+        graphs.append(gm)
+        return gm.forward
+
+    fn = torch.compile(Tanh(), backend=backend, fullgraph=True)
+    x = _inputs((3, 7), torch.bfloat16)
+    assert torch.equal(fn(x), torch.tanh(x))
+    ops = [n.target for g in graphs for n in g.graph.nodes if n.op == "call_function"]
+    assert torch.tanh in ops and len(ops) == 1
