@@ -15,7 +15,9 @@ joined by a 512-wide tanh layer), separate actor and critic, linear heads (``mod
 recurrent core, no observation normalisation, rollout 128, batch 1024, lr 1e-4, the given epochs; advantages by
 V-trace here, by GAE (lambda 1, its quadrotor baseline's) in the peer, whose V-trace fails in sample-factory 2.1.1.
 The peer runs ``--peer-workers`` rollout processes with ``--peer-envs`` swarms each (its own inference and
-learner processes beside them); ours one rollout worker and the learner (2 cores).
+learner processes beside them); ours, per ``--layouts``, one rollout worker and the learner on a core each
+(``async``, the default) or serial mode (``serial``: collect a batch, then learn on it, both on both cores), the
+best of them counting as the peer's best layout does.
 """
 from __future__ import annotations
 
@@ -61,10 +63,15 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
             "--with_wandb=False", "--save_every_sec=100000", "--save_best_every_sec=100000"]
 
 
-def our_overrides(encoder: str, epochs: int, seconds: float, precision: str) -> List[str]:
-    """Our config overrides (on configs/paper.yaml) at the same matched settings."""
-    return [f"model.encoder={PEER_ENCODERS[encoder]}", "model.symmetry=none", "model.head_hidden=0",
-            "model.share_encoder=false", "model.normalize_obs=false", "env.num_agents=8", "env.scenario=mix",
+OUR_LAYOUTS = {"async": "runner.serial=false", "serial": "runner.serial=true"}  # our process layouts on the cores
+
+
+def our_overrides(encoder: str, epochs: int, seconds: float, precision: str, layout: str = "async") -> List[str]:
+    """Our config overrides (on configs/paper.yaml) at the same matched settings, in one of OUR_LAYOUTS: ``async``
+    (one rollout worker + the learner, one core each) or ``serial`` (collect, then learn, each on both cores)."""
+    return [OUR_LAYOUTS[layout], f"model.encoder={PEER_ENCODERS[encoder]}", "model.symmetry=none",
+            "model.head_hidden=0", "model.share_encoder=false", "model.normalize_obs=false", "env.num_agents=8",
+            "env.scenario=mix",
             "env.num_neighbors=6", "env.neighbor_obs=pos_vel", "algo.rollout=128", "algo.batch_size=1024",
             "algo.lr=0.0001", f"algo.num_epochs={epochs}", f"runner.precision={precision}",
             f"runner.inference_precision={precision}", f"runner.time_limit_s={seconds}",
@@ -121,16 +128,25 @@ def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path) -
     return parse_peer_log(log.read_text())
 
 
-def run_ours(args, encoder: str, epochs: int, precision: str, tmp: Path) -> Dict[str, float]:
+def run_ours(args, encoder: str, epochs: int, precision: str, layout: str, tmp: Path) -> Dict[str, float]:
     from benchmarks.training_throughput import measure_run
     from swarm_appo.config import load_config
     from swarm_appo.trainer import train
 
     cfg = load_config(str(ROOT / "configs" / "paper.yaml"), [
-        *our_overrides(encoder, epochs, args.seconds, precision), f"runner.run_dir={tmp}",
-        f"runner.name=ours_{encoder}_e{epochs}_{precision}"])
+        *our_overrides(encoder, epochs, args.seconds, precision, layout), f"runner.run_dir={tmp}",
+        f"runner.name=ours_{encoder}_e{epochs}_{precision}_{layout}"])
     result = train(cfg, progress=False)
     return measure_run(result.run_dir)
+
+
+def our_cell(by_layout: Dict[str, Dict[str, float]], peer_sps: float) -> str:
+    """One table cell: each layout's agent-steps/s (named when there are several), the best against the peer."""
+    best = max(r["sps"] for r in by_layout.values())
+    if len(by_layout) == 1:
+        return f"{best:,.0f} (**{best / peer_sps:.2f}x**)"
+    rates = ", ".join(f"{name}: {r['sps']:,.0f}" for name, r in by_layout.items())
+    return f"{rates} (best **{best / peer_sps:.2f}x**)"
 
 
 def main(argv: Sequence[str] = None) -> None:
@@ -144,9 +160,16 @@ def main(argv: Sequence[str] = None) -> None:
     p.add_argument("--peer-workers", type=int, default=2, help="the peer's rollout processes (its default: cores)")
     p.add_argument("--peer-envs", default="8", help="comma-separated swarms per peer rollout process; the best "
                    "counts (8 x 2 workers = our 16 swarms in flight)")
+    p.add_argument("--layouts", default="async", help="comma-separated, ours: async (a rollout worker and the "
+                   "learner, one core each) and/or serial (both cores for collecting, then for learning); the best "
+                   "counts, as the peer's best --peer-envs does")
     p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
     args = p.parse_args(argv)
     encoders, precisions = args.encoders.split(","), args.precisions.split(",")
+    layouts = args.layouts.split(",")
+    for name in layouts:
+        if name not in OUR_LAYOUTS:
+            p.error(f"--layouts: unknown {name!r}; valid: {', '.join(OUR_LAYOUTS)}")
     for name in encoders:
         if name not in PEER_ENCODERS:
             p.error(f"unknown encoder {name!r}; valid: {', '.join(PEER_ENCODERS)}")
@@ -177,21 +200,25 @@ def main(argv: Sequence[str] = None) -> None:
                           f"agent-steps/s (first trained batch after {peers[envs]['first_trained_s']:.0f} s)",
                           flush=True)
                 peer = max(peers.values(), key=lambda r: r["sps"])
-                ours = {}
+                ours = {}  # precision -> layout -> result
                 for precision in precisions:
-                    ours[precision] = run_ours(args, encoder, epochs, precision, tmp)
-                    print(f"ours {PEER_ENCODERS[encoder]} e{epochs} {precision}: {ours[precision]['sps']:,.0f} "
-                          f"agent-steps/s, {ours[precision]['sps'] / peer['sps']:.2f}x the peer", flush=True)
+                    for layout in layouts:
+                        r = ours.setdefault(precision, {})[layout] = run_ours(args, encoder, epochs, precision,
+                                                                               layout, tmp)
+                        print(f"ours {PEER_ENCODERS[encoder]} e{epochs} {precision} {layout}: {r['sps']:,.0f} "
+                              f"agent-steps/s, {r['sps'] / peer['sps']:.2f}x the peer", flush=True)
                 peer_cells = ", ".join(f"{args.peer_workers}x{e}: {r['sps']:,.0f}" for e, r in peers.items())
-                ours_cells = " | ".join(f"{r['sps']:,.0f} (**{r['sps'] / peer['sps']:.2f}x**)" for r in ours.values())
-                shares = ", ".join(f"{r['learner_share']:.2f}" for r in ours.values())
+                ours_cells = " | ".join(our_cell(by_layout, peer["sps"]) for by_layout in ours.values())
+                shares = ", ".join(f"{r['learner_share']:.2f}" for by_layout in ours.values()
+                                   for r in by_layout.values())
                 lines.append(f"| {encoder} / {PEER_ENCODERS[encoder]} | {epochs} | {peer_cells} | {ours_cells} | "
                              f"{shares} |")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
     header = ("| encoder (peer / ours) | epochs | peer agent-steps/s (workers x swarms) | "
-              + " | ".join(f"ours {pr} (vs best peer)" for pr in precisions) + " | our learner share |\n"
+              + " | ".join(f"ours {pr} (vs best peer)" for pr in precisions)
+              + f" | our learner share ({', '.join(f'{pr} {lo}' for pr in precisions for lo in layouts)}) |\n"
               + "|---|---|---|" + "---|" * len(precisions) + "---|")
     peer_version = subprocess.run(
         [args.peer_python, "-c", "import importlib.metadata as m; print(m.version('sample-factory'))"],

@@ -59,6 +59,7 @@ def test_both_sides_train_the_same_settings(encoder, epochs, tmp_path):
     (["--precisions", "fp16"], "--precisions: unknown 'fp16'; valid: fp32, bf16"),
     (["--epochs", "1,five"], "--epochs and --peer-envs take comma-separated integers"),
     (["--peer-envs", "0"], "--epochs and --peer-envs must be >= 1"),
+    (["--layouts", "async,parallel"], "--layouts: unknown 'parallel'; valid: async, serial"),
     ([], "--peer-python must exist and --peer-src must hold swarm_rl/"),
 ])
 def test_bad_options_are_usage_errors(option, message, capsys, tmp_path):
@@ -72,3 +73,20 @@ def test_steady_window_drops_the_warm_up_and_keeps_at_least_two():
     times = [0.0, 10.0, 29.0, 30.0, 70.0, 100.0]
     assert steady_window(times, float) == [30.0, 70.0, 100.0]  # from 0 + 0.3 x 100 s on
     assert steady_window(times, float, warmup_fraction=0.95) == [70.0, 100.0]  # one left: the last two
+
+
+@pytest.mark.parametrize("layout,serial", [("async", False), ("serial", True)])
+def test_layouts_change_only_the_process_layout(layout, serial, tmp_path):
+    base = load_config(str(pt.ROOT / "configs" / "paper.yaml"),
+                       pt.our_overrides("attention", 5, 60, "bf16") + [f"runner.run_dir={tmp_path}"])
+    cfg = load_config(str(pt.ROOT / "configs" / "paper.yaml"),
+                      pt.our_overrides("attention", 5, 60, "bf16", layout) + [f"runner.run_dir={tmp_path}"])
+    assert cfg.runner.serial is serial
+    assert cfg.algo == base.algo and cfg.model == base.model and cfg.env == base.env
+
+
+def test_our_cell_names_layouts_and_rates_the_best():
+    one = {"async": {"sps": 1500.0}}
+    assert pt.our_cell(one, 600.0) == "1,500 (**2.50x**)"
+    two = {"async": {"sps": 1500.0}, "serial": {"sps": 1950.0}}
+    assert pt.our_cell(two, 600.0) == "async: 1,500, serial: 1,950 (best **3.25x**)"
