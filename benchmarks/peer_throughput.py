@@ -17,7 +17,8 @@ V-trace here, by GAE (lambda 1, its quadrotor baseline's) in the peer, whose V-t
 The peer runs ``--peer-workers`` rollout processes with ``--peer-envs`` swarms each (its own inference and
 learner processes beside them); ours, per ``--layouts``, one rollout worker and the learner on a core each
 (``async``, the default) or serial mode (``serial``: collect a batch, then learn on it, both on both cores), the
-best of them counting as the peer's best layout does.
+best of them counting as the peer's best layout does. With ``serial`` the peer also runs its own serial mode
+(``--serial_mode=True --async_rl=False``, one process with all the cores' threads) beside its asynchronous layouts.
 """
 from __future__ import annotations
 
@@ -43,8 +44,10 @@ _FRAMES = re.compile(r"Fps is .*?Total num frames: (\d+)")
 
 
 def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_dir: str, workers: int,
-                 envs_per_worker: int, seed: int = 0) -> List[str]:
-    """The peer's command line at the matched settings (see the module docstring)."""
+                 envs_per_worker: int, seed: int = 0, serial: bool = False) -> List[str]:
+    """The peer's command line at the matched settings (see the module docstring); ``serial``: its serial mode
+    (one process: collect, then learn), the counterpart of our ``runner.serial``."""
+    layout = ["--serial_mode=True", "--async_rl=False"] if serial else []
     return [python, "-m", "swarm_rl.train", "--env=quadrotor_multi", "--algo=APPO", f"--experiment=peer_{encoder}",
             f"--train_dir={train_dir}", "--device=cpu", f"--seed={seed}",
             f"--train_for_seconds={int(seconds)}",  # ignored by 2.1.1: run_peer stops it
@@ -60,7 +63,7 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
             "--quads_num_agents=8", "--quads_mode=mix", "--quads_episode_duration=15.0",
             f"--quads_neighbor_encoder_type={encoder}", "--quads_neighbor_hidden_size=256",
             "--quads_neighbor_obs_type=pos_vel", "--quads_neighbor_visible_num=6", "--quads_collision_reward=5.0",
-            "--with_wandb=False", "--save_every_sec=100000", "--save_best_every_sec=100000"]
+            "--with_wandb=False", "--save_every_sec=100000", "--save_best_every_sec=100000", *layout]
 
 
 OUR_LAYOUTS = {"async": "runner.serial=false", "serial": "runner.serial=true"}  # our process layouts on the cores
@@ -100,12 +103,15 @@ def parse_peer_log(text: str, warmup_fraction: float = 0.3) -> Dict[str, float]:
     return {"sps": (fb - fa) / max(tb - ta, 1e-9), "agent_steps": fb, "first_trained_s": trained[0][0] - start}
 
 
-def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path) -> Dict[str, float]:
-    train_dir = tmp / f"peer_{encoder}_e{epochs}_x{envs_per_worker}"
+def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path, serial: bool = False
+             ) -> Dict[str, float]:
+    train_dir = tmp / f"peer_{encoder}_e{epochs}_x{envs_per_worker}{'_serial' if serial else ''}"
+    # one thread per process when its processes share the cores; its one serial process gets them all
+    threads = str(os.cpu_count() or 1) if serial else "1"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [args.peer_src, os.environ.get("PYTHONPATH")])),
-               OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
+               OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", threads))
     cmd = peer_command(args.peer_python, encoder, epochs, args.seconds, str(train_dir), args.peer_workers,
-                       envs_per_worker)
+                       envs_per_worker, serial=serial)
     log = train_dir / f"peer_{encoder}" / "sf_log.txt"
     start = time.time()
     train_dir.mkdir(parents=True)
@@ -160,9 +166,9 @@ def main(argv: Sequence[str] = None) -> None:
     p.add_argument("--peer-workers", type=int, default=2, help="the peer's rollout processes (its default: cores)")
     p.add_argument("--peer-envs", default="8", help="comma-separated swarms per peer rollout process; the best "
                    "counts (8 x 2 workers = our 16 swarms in flight)")
-    p.add_argument("--layouts", default="async", help="comma-separated, ours: async (a rollout worker and the "
-                   "learner, one core each) and/or serial (both cores for collecting, then for learning); the best "
-                   "counts, as the peer's best --peer-envs does")
+    p.add_argument("--layouts", default="async", help="comma-separated: async (ours: a rollout worker and the "
+                   "learner, one core each) and/or serial (collecting, then learning, on all cores; the peer's serial "
+                   "mode runs too); on each side the best counts")
     p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
     args = p.parse_args(argv)
     encoders, precisions = args.encoders.split(","), args.precisions.split(",")
@@ -193,12 +199,14 @@ def main(argv: Sequence[str] = None) -> None:
     try:
         for encoder in encoders:
             for epochs in epoch_counts:
-                peers = {}
-                for envs in peer_envs:
-                    peers[envs] = run_peer(args, encoder, epochs, envs, tmp)
-                    print(f"peer {encoder} e{epochs} {args.peer_workers}x{envs}: {peers[envs]['sps']:,.0f} "
-                          f"agent-steps/s (first trained batch after {peers[envs]['first_trained_s']:.0f} s)",
-                          flush=True)
+                peers = {}  # layout label -> result; with our serial layout, the peer's serial mode runs too
+                runs = [(f"{args.peer_workers}x{e}", e, False) for e in peer_envs]
+                runs += [(f"serial {args.peer_workers}x{max(peer_envs)}", max(peer_envs), True)] \
+                    if "serial" in layouts else []
+                for label, envs, serial in runs:
+                    r = peers[label] = run_peer(args, encoder, epochs, envs, tmp, serial=serial)
+                    print(f"peer {encoder} e{epochs} {label}: {r['sps']:,.0f} agent-steps/s (first trained batch "
+                          f"after {r['first_trained_s']:.0f} s)", flush=True)
                 peer = max(peers.values(), key=lambda r: r["sps"])
                 ours = {}  # precision -> layout -> result
                 for precision in precisions:
@@ -207,7 +215,7 @@ def main(argv: Sequence[str] = None) -> None:
                                                                                layout, tmp)
                         print(f"ours {PEER_ENCODERS[encoder]} e{epochs} {precision} {layout}: {r['sps']:,.0f} "
                               f"agent-steps/s, {r['sps'] / peer['sps']:.2f}x the peer", flush=True)
-                peer_cells = ", ".join(f"{args.peer_workers}x{e}: {r['sps']:,.0f}" for e, r in peers.items())
+                peer_cells = ", ".join(f"{label}: {r['sps']:,.0f}" for label, r in peers.items())
                 ours_cells = " | ".join(our_cell(by_layout, peer["sps"]) for by_layout in ours.values())
                 shares = ", ".join(f"{r['learner_share']:.2f}" for by_layout in ours.values()
                                    for r in by_layout.values())

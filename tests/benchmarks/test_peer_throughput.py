@@ -90,3 +90,11 @@ def test_our_cell_names_layouts_and_rates_the_best():
     assert pt.our_cell(one, 600.0) == "1,500 (**2.50x**)"
     two = {"async": {"sps": 1500.0}, "serial": {"sps": 1950.0}}
     assert pt.our_cell(two, 600.0) == "async: 1,500, serial: 1,950 (best **3.25x**)"
+
+
+def test_peer_serial_mode_is_its_only_difference():
+    asynchronous = pt.peer_command("py", "attention", 5, 60, "d", 2, 8)
+    serial = pt.peer_command("py", "attention", 5, 60, "d", 2, 8, serial=True)
+    assert serial[:3] == ["py", "-m", "swarm_rl.train"]  # flags go to the peer's trainer, not to python
+    assert sorted(set(serial) - set(asynchronous)) == ["--async_rl=False", "--serial_mode=True"]
+    assert set(asynchronous) <= set(serial)
