@@ -47,7 +47,10 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
                  envs_per_worker: int, seed: int = 0, serial: bool = False) -> List[str]:
     """The peer's command line at the matched settings (see the module docstring); ``serial``: its serial mode
     (one process: collect, then learn), the counterpart of our ``runner.serial``."""
-    layout = ["--serial_mode=True", "--async_rl=False"] if serial else []
+    # synchronous: one training iteration per rollout of all swarms (2 x 8 swarms x 8 drones x 128 steps = 16
+    # batches of 1024), 5 epochs over it, as our serial mode; sample-factory refuses any other ratio
+    per_rollout = workers * envs_per_worker * 8 * 128 // 1024
+    layout = ["--serial_mode=True", "--async_rl=False", f"--num_batches_per_epoch={per_rollout}"] if serial else []
     return [python, "-m", "swarm_rl.train", "--env=quadrotor_multi", "--algo=APPO", f"--experiment=peer_{encoder}",
             f"--train_dir={train_dir}", "--device=cpu", f"--seed={seed}",
             f"--train_for_seconds={int(seconds)}",  # ignored by 2.1.1: run_peer stops it

@@ -96,5 +96,11 @@ def test_peer_serial_mode_is_its_only_difference():
     asynchronous = pt.peer_command("py", "attention", 5, 60, "d", 2, 8)
     serial = pt.peer_command("py", "attention", 5, 60, "d", 2, 8, serial=True)
     assert serial[:3] == ["py", "-m", "swarm_rl.train"]  # flags go to the peer's trainer, not to python
-    assert sorted(set(serial) - set(asynchronous)) == ["--async_rl=False", "--serial_mode=True"]
+    assert sorted(set(serial) - set(asynchronous)) == ["--async_rl=False", "--num_batches_per_epoch=16",
+                                                       "--serial_mode=True"]
+    # sample-factory's synchronous mode needs samples per rollout = batches per epoch x batch size
+    flags = dict(a[2:].split("=", 1) for a in serial if "=" in a)
+    per_rollout = (int(flags["num_workers"]) * int(flags["num_envs_per_worker"]) * int(flags["quads_num_agents"])
+                   * int(flags["rollout"]))
+    assert per_rollout == int(flags["num_batches_per_epoch"]) * int(flags["batch_size"])
     assert set(asynchronous) <= set(serial)
