@@ -9,11 +9,10 @@ from torch import nn
 from quad_env.obs_layout import ObsLayout
 
 
-
 class _TanhViaFloat32(torch.autograd.Function):
     """tanh of a bf16/fp16 CPU tensor computed in fp32 and rounded once: bit-identical to ``torch.tanh`` on the
-    low-precision tensor, but 2-2.5x faster on CPUs, whose low-precision tanh kernel is slower than the fp32 one
-    (benchmarks/RESULTS.md, "bf16 tanh on the CPU"). The backward uses the saved output in its own dtype, as
+    low-precision tensor, but 2-2.7x faster for bf16 on the CPU, where torch's bf16 tanh kernel is 2x slower than its
+    fp32 one (benchmarks/RESULTS.md, "bf16_tanh"). The backward uses the saved output in its own dtype, as
     ``torch.tanh``'s does."""
 
     CHUNK = 1 << 17  # elements per fp32 pass: 512 KB, stays in L2 (3x the native kernel, vs 2.2x unchunked)
