@@ -13,28 +13,15 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import sys
-import time
 from typing import Optional, Sequence
 
 import torch
 from torch import nn
 
-from benchmarks.common import append_results, commit, load_average, machine
+from benchmarks.common import best_time, load_average, publish, section_header
 from encoders.common import Tanh
 
 SHAPES = [(4096 * 6, 256), (4096, 512), (4096, 256), (4096 * 7, 64)]  # per-neighbour, join, self, small preset
-
-
-def _best_ms(fn, repeats: int = 20) -> float:
-    for _ in range(3):
-        fn()
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best * 1e3
 
 
 def op_rows():
@@ -44,8 +31,8 @@ def op_rows():
     for shape in SHAPES:
         x = torch.randn(*shape).bfloat16().requires_grad_()
         g = torch.randn(*shape).bfloat16()
-        native = _best_ms(lambda: torch.autograd.grad(torch.tanh(x), x, g))
-        fast = _best_ms(lambda: torch.autograd.grad(ours(x), x, g))
+        native = 1e3 * best_time(lambda: torch.autograd.grad(torch.tanh(x), x, g), 20)
+        fast = 1e3 * best_time(lambda: torch.autograd.grad(ours(x), x, g), 20)
         rows.append(f"| tanh {list(shape)} bf16, forward + backward | {native:.2f} ms | {fast:.2f} ms | "
                     f"{native / fast:.2f}x |")
         print(rows[-1], flush=True)
@@ -61,14 +48,13 @@ def with_native_tanh(model: nn.Module) -> int:
     return len(swaps)
 
 
-def learner_rows(cfg_path: str, encoders, overrides, rounds: int):
+def learner_rows(configs, rounds: int):
+    """``configs``: encoder name -> its loaded config."""
     from benchmarks.gpu_learner import collect_batch, make_learner, timed_call
-    from swarm_appo.config import load_config
 
     rows = []
     device = torch.device("cpu")
-    for name in encoders:
-        cfg = load_config(cfg_path, [f"model.encoder={name}", "model.symmetry=null", *overrides])
+    for name, cfg in configs.items():
         batch = collect_batch(cfg)
         torch.set_num_threads(1)
         native, ours = make_learner(cfg, device, "bf16"), make_learner(cfg, device, "bf16")
@@ -97,27 +83,28 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = p.parse_args(argv)
     if args.rounds < 1:
         raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
+    from swarm_appo.config import ConfigError, load_config
+
+    configs = {}  # every config checked before anything is timed
+    for name in (e.strip() for e in args.encoders.split(",") if e.strip()):
+        try:
+            configs[name] = load_config(args.config, [f"model.encoder={name}", "model.symmetry=null",
+                                                      *args.overrides])
+        except ConfigError as exc:
+            raise SystemExit(f"config error: {exc}")
     torch.set_num_threads(1)
-    load_before = load_average()
+    started, load_before = datetime.datetime.now().isoformat(timespec="seconds"), load_average()
     lines = ["| what | torch's bf16 tanh | encoders.common.Tanh | ours / native |", "|---|---:|---:|---:|"]
     lines += op_rows()
-    encoders = [e.strip() for e in args.encoders.split(",") if e.strip()]
-    lines += learner_rows(args.config, encoders, args.overrides, args.rounds)
-    text = "\n".join([
-        f"## bf16_tanh — {datetime.datetime.now().isoformat(timespec='seconds')}",
-        "",
-        f"- command: `python -m benchmarks.bf16_tanh {' '.join(argv if argv is not None else sys.argv[1:])}`",
-        f"- commit: {commit(['encoders', 'swarm_appo', 'benchmarks'])}",
-        f"- machine: {machine()}, torch {torch.__version__}, 1 thread; load average before: {load_before}, "
-        f"after: {load_average()}",
-        f"- config: `{args.config}`{' with ' + ' '.join(args.overrides) if args.overrides else ''}; ops: best of 20; "
+    lines += learner_rows(configs, args.rounds)
+    publish("\n".join([
+        *section_header("bf16_tanh", started, argv, ["encoders", "swarm_appo", "benchmarks"], load_before),
+        f"- torch {torch.__version__}, 1 thread; config: `{args.config}`"
+        f"{' with ' + ' '.join(args.overrides) if args.overrides else ''}; ops: best of 20; "
         f"learner calls: best of {args.rounds}, the two variants alternating",
         "",
         *lines,
-    ])
-    print(text)
-    if not args.no_append:
-        append_results(text)
+    ]), append=not args.no_append)
     return 0
 
 

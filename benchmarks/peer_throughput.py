@@ -39,6 +39,7 @@ import torch
 from benchmarks.common import ROOT, load_average, publish, section_header, steady_window
 
 PEER_ENCODERS = {"attention": "kattention", "mean_embed": "deepsets"}  # peer name -> ours
+AGENTS, ROLLOUT, BATCH = 8, 128, 1024  # matched on both sides
 _STAMP = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})\]\[\s*\d+\] ")
 _FRAMES = re.compile(r"Fps is .*?Total num frames: (\d+)")
 
@@ -49,7 +50,7 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
     (one process: collect, then learn), the counterpart of our ``runner.serial``."""
     # synchronous: one training iteration per rollout of all swarms (2 x 8 swarms x 8 drones x 128 steps = 16
     # batches of 1024), 5 epochs over it, as our serial mode; sample-factory refuses any other ratio
-    per_rollout = workers * envs_per_worker * 8 * 128 // 1024
+    per_rollout = workers * envs_per_worker * AGENTS * ROLLOUT // BATCH
     layout = ["--serial_mode=True", "--async_rl=False", f"--num_batches_per_epoch={per_rollout}"] if serial else []
     return [python, "-m", "swarm_rl.train", "--env=quadrotor_multi", "--algo=APPO", f"--experiment=peer_{encoder}",
             f"--train_dir={train_dir}", "--device=cpu", f"--seed={seed}",
@@ -57,13 +58,13 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
             "--train_for_env_steps=10000000000", f"--num_workers={workers}",
             f"--num_envs_per_worker={envs_per_worker}", "--use_rnn=False", "--rnn_size=256",
             "--nonlinearity=tanh", "--actor_critic_share_weights=False", "--policy_initialization=xavier_uniform",
-            "--adaptive_stddev=False", "--learning_rate=0.0001", "--rollout=128", "--recurrence=1",
+            "--adaptive_stddev=False", "--learning_rate=0.0001", f"--rollout={ROLLOUT}", "--recurrence=1",
             # its quadrotor baseline's advantages (GAE, lambda 1): sample-factory 2.1.1's V-trace path fails in
             # its summaries ('advantages' missing); our V-trace costs a few vector ops per batch either way
             "--with_vtrace=False", "--gae_lambda=1.0",
-            "--batch_size=1024", f"--num_epochs={epochs}", "--max_grad_norm=5.0", "--exploration_loss_coeff=0.0",
+            f"--batch_size={BATCH}", f"--num_epochs={epochs}", "--max_grad_norm=5.0", "--exploration_loss_coeff=0.0",
             "--normalize_input=False", "--normalize_returns=False", "--gamma=0.99", "--quads_use_numba=True",
-            "--quads_num_agents=8", "--quads_mode=mix", "--quads_episode_duration=15.0",
+            f"--quads_num_agents={AGENTS}", "--quads_mode=mix", "--quads_episode_duration=15.0",
             f"--quads_neighbor_encoder_type={encoder}", "--quads_neighbor_hidden_size=256",
             "--quads_neighbor_obs_type=pos_vel", "--quads_neighbor_visible_num=6", "--quads_collision_reward=5.0",
             "--with_wandb=False", "--save_every_sec=100000", "--save_best_every_sec=100000", *layout]
@@ -76,9 +77,9 @@ def our_overrides(encoder: str, epochs: int, seconds: float, precision: str, lay
     """Our config overrides (on configs/paper.yaml) at the same matched settings, in one of OUR_LAYOUTS: ``async``
     (one rollout worker + the learner, one core each) or ``serial`` (collect, then learn, each on both cores)."""
     return [OUR_LAYOUTS[layout], f"model.encoder={PEER_ENCODERS[encoder]}", "model.symmetry=none",
-            "model.head_hidden=0", "model.share_encoder=false", "model.normalize_obs=false", "env.num_agents=8",
+            "model.head_hidden=0", "model.share_encoder=false", "model.normalize_obs=false", f"env.num_agents={AGENTS}",
             "env.scenario=mix",
-            "env.num_neighbors=6", "env.neighbor_obs=pos_vel", "algo.rollout=128", "algo.batch_size=1024",
+            "env.num_neighbors=6", "env.neighbor_obs=pos_vel", f"algo.rollout={ROLLOUT}", f"algo.batch_size={BATCH}",
             "algo.lr=0.0001", f"algo.num_epochs={epochs}", f"runner.precision={precision}",
             f"runner.inference_precision={precision}", f"runner.time_limit_s={seconds}",
             "runner.total_agent_steps=10000000000", "runner.final_eval_episodes=0",
@@ -204,8 +205,8 @@ def main(argv: Sequence[str] = None) -> None:
             for epochs in epoch_counts:
                 peers = {}  # layout label -> result; with our serial layout, the peer's serial mode runs too
                 runs = [(f"{args.peer_workers}x{e}", e, False) for e in peer_envs]
-                runs += [(f"serial {args.peer_workers}x{max(peer_envs)}", max(peer_envs), True)] \
-                    if "serial" in layouts else []
+                if "serial" in layouts:
+                    runs.append((f"serial {args.peer_workers}x{max(peer_envs)}", max(peer_envs), True))
                 for label, envs, serial in runs:
                     r = peers[label] = run_peer(args, encoder, epochs, envs, tmp, serial=serial)
                     print(f"peer {encoder} e{epochs} {label}: {r['sps']:,.0f} agent-steps/s (first trained batch "

@@ -30,3 +30,9 @@ def test_with_native_tanh_swaps_every_tanh_and_keeps_the_function():
 def test_rounds_must_be_positive():
     with pytest.raises(SystemExit, match="--rounds"):
         main(["--rounds", "0", "--no-append"])
+
+
+def test_unknown_encoder_is_a_config_error_before_anything_runs(capsys):
+    with pytest.raises(SystemExit, match="config error: .*model.encoder.*deepsets"):
+        main(["--encoders", "deepsetz", "--no-append"])
+    assert capsys.readouterr().out == ""  # nothing was timed or printed
