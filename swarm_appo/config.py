@@ -275,7 +275,9 @@ QUICKSTART: Dict[str, Any] = {
 
 # =============================================================================================== YAML
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads ``1e-4`` as a float (YAML 1.1 insists on ``1.0e-4``)."""
+    """SafeLoader that also reads ``1e-4`` as a float (YAML 1.1 insists on ``1.0e-4``), and takes only
+    true/false as booleans (YAML 1.2): YAML 1.1's on/off/yes/no stay words, so ``runner.compile=off`` is the
+    mode "off", and a boolean key given ``yes`` is an error naming the key."""
 
 
 _Loader.add_implicit_resolver(
@@ -286,6 +288,13 @@ _Loader.add_implicit_resolver(
                    |[-+]?\.(?:inf|Inf|INF)
                    |\.(?:nan|NaN|NAN))$""", re.X),
     list("-+0123456789."))
+
+
+_Loader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:bool"]
+    for first, resolvers in _Loader.yaml_implicit_resolvers.items()}
+_Loader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+                              list("tTfF"))
 
 
 def yaml_load(text: str) -> Any:

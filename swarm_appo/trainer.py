@@ -29,7 +29,8 @@ import torch
 
 from quad_env import REWARD_TERMS, VecQuadEnv
 from swarm_appo.checkpoint import TrainingState, capture_rng_states, restore_rng_states
-from swarm_appo.config import ConfigError, TrainConfig, config_from_dict, config_to_dict, save_config, validate
+from swarm_appo.config import (ConfigError, TrainConfig, config_from_dict, config_to_dict, save_config, validate,
+                               yaml_load)
 from swarm_appo.eval_tables import METRICS as TABLE_METRICS
 from swarm_appo.evaluation import compare_with_random, default_eval_seed
 from swarm_appo.learner import Learner
@@ -359,8 +360,7 @@ class Trainer:
             run_dir = Path(resume_dir)
             state, ckpt_path = TrainingState.load_latest(run_dir)
             if cfg is None:
-                import yaml
-                cfg = config_from_dict(yaml.safe_load((run_dir / "config.yaml").read_text()))
+                cfg = config_from_dict(yaml_load((run_dir / "config.yaml").read_text()))
             if state is None:  # killed before its first checkpoint: nothing to continue, one history to keep
                 log.warning("%s has no checkpoint yet: starting it afresh at step 0 (its metrics so far are "
                             "dropped, a new wandb run is made)", run_dir)

@@ -110,7 +110,8 @@ def test_unknown_keys_name_the_dotted_key_and_the_valid_ones(override, fragments
     ("env.num_agents=2.5", ["'env.num_agents'", "int", "2.5"]),
     ("env.num_agents=true", ["'env.num_agents'", "int", "True"]),
     ("runner.serial=1", ["'runner.serial'", "bool", "1"]),
-    ("algo.value_clip=yes", ["'algo.value_clip'", "Optional[float]", "True"]),
+    ("algo.value_clip=yes", ["'algo.value_clip'", "Optional[float]", "'yes'"]),
+    ("runner.serial=on", ["'runner.serial'", "bool", "'on'"]),  # YAML 1.1's on/off/yes/no are words here
     ("algo.adam_betas=[0.9]", ["'algo.adam_betas'", "2 values", "[0.9]"]),
     ("algo.adam_betas=0.9", ["'algo.adam_betas'", "Tuple[float, float]"]),
     ("model.encoder_kwargs=3", ["'model.encoder_kwargs'", "Dict"]),
@@ -123,6 +124,16 @@ def test_wrong_types_name_key_expected_type_and_value(override, fragments):
         load_config(None, [override])
     for fragment in fragments:
         assert fragment in str(info.value), (fragment, str(info.value))
+
+
+def test_yaml_1_1_words_are_strings_and_only_true_false_are_booleans(tmp_path):
+    # runner.compile's mode "off" must not turn into False (YAML 1.1 reads off/on/yes/no as booleans)
+    assert load_config(None, ["runner.compile=off"]).runner.compile == "off"
+    path = tmp_path / "c.yaml"
+    path.write_text("runner:\n  compile: off\n  serial: true\nwandb:\n  mode: disabled\n")
+    cfg = load_config(str(path))
+    assert cfg.runner.compile == "off" and cfg.runner.serial is True
+    assert load_config(None, ["runner.serial=FALSE"]).runner.serial is False
 
 
 @pytest.mark.parametrize("override, fragment", [
