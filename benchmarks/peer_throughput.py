@@ -71,14 +71,17 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
 
 
 OUR_LAYOUTS = {"async": "runner.serial=false", "serial": "runner.serial=true"}  # our process layouts on the cores
+OUR_COMPILE_MODES = ("off", "default")  # runner.compile on a CPU ("reduce-overhead" is CUDA graphs)
 
 
-def our_overrides(encoder: str, epochs: int, seconds: float, precision: str, layout: str = "async") -> List[str]:
+def our_overrides(encoder: str, epochs: int, seconds: float, precision: str, layout: str = "async",
+                  compile: str = "off") -> List[str]:
     """Our config overrides (on configs/paper.yaml) at the same matched settings, in one of OUR_LAYOUTS: ``async``
-    (one rollout worker + the learner, one core each) or ``serial`` (collect, then learn, each on both cores)."""
-    return [OUR_LAYOUTS[layout], f"model.encoder={PEER_ENCODERS[encoder]}", "model.symmetry=none",
-            "model.head_hidden=0", "model.share_encoder=false", "model.normalize_obs=false", f"env.num_agents={AGENTS}",
-            "env.scenario=mix",
+    (one rollout worker + the learner, one core each) or ``serial`` (collect, then learn, each on both cores);
+    ``compile``: ``runner.compile``, torch.compile of the learner's forward (off by default, as in every config)."""
+    return [OUR_LAYOUTS[layout], f"runner.compile={compile}", f"model.encoder={PEER_ENCODERS[encoder]}",
+            "model.symmetry=none", "model.head_hidden=0", "model.share_encoder=false", "model.normalize_obs=false",
+            f"env.num_agents={AGENTS}", "env.scenario=mix",
             "env.num_neighbors=6", "env.neighbor_obs=pos_vel", f"algo.rollout={ROLLOUT}", f"algo.batch_size={BATCH}",
             "algo.lr=0.0001", f"algo.num_epochs={epochs}", f"runner.precision={precision}",
             f"runner.inference_precision={precision}", f"runner.time_limit_s={seconds}",
@@ -88,7 +91,7 @@ def our_overrides(encoder: str, epochs: int, seconds: float, precision: str, lay
 
 def parse_peer_log(text: str, warmup_fraction: float = 0.3) -> Dict[str, float]:
     """Steady-state agent-steps/s from a Sample Factory log: the learner's frame count over time, after a warm-up
-    (``warmup_fraction`` of the span from its first trained batch to its last report)."""
+    (``warmup_fraction`` of the span from its first trained batch to the last report where the count moved)."""
     points, start = [], None  # (seconds since epoch, frames); the log's first stamped line
     for line in text.splitlines():
         stamp = _STAMP.match(line)
@@ -99,7 +102,10 @@ def parse_peer_log(text: str, warmup_fraction: float = 0.3) -> Dict[str, float]:
         frames = _FRAMES.match(line, stamp.end())
         if frames:
             points.append((t, int(frames.group(1))))
-    trained = [p for p in points if p[1] > 0]
+    # the reports where the count moved (its serial mode trains in steps of a whole rollout, 16 x 1024 frames,
+    # reported unchanged every few seconds between): a rate between two moves is not biased by where the window
+    # cuts a flat stretch
+    trained = [p for i, p in enumerate(points) if p[1] > 0 and (i == 0 or p[1] != points[i - 1][1])]
     if len(trained) < 2:
         raise RuntimeError(f"the peer's log has {len(trained)} reports with trained frames: raise --seconds")
     steady = steady_window(trained, lambda p: p[0], warmup_fraction)
@@ -138,14 +144,20 @@ def run_peer(args, encoder: str, epochs: int, envs_per_worker: int, tmp: Path, s
     return parse_peer_log(log.read_text())
 
 
-def run_ours(args, encoder: str, epochs: int, precision: str, layout: str, tmp: Path) -> Dict[str, float]:
+def our_label(layout: str, compile: str) -> str:
+    """How a run of ours is named in the table: its layout, and its torch.compile mode when on."""
+    return layout if compile == "off" else f"{layout} compiled ({compile})"
+
+
+def run_ours(args, encoder: str, epochs: int, precision: str, layout: str, tmp: Path,
+             compile: str = "off") -> Dict[str, float]:
     from benchmarks.training_throughput import measure_run
     from swarm_appo.config import load_config
     from swarm_appo.trainer import train
 
     cfg = load_config(str(ROOT / "configs" / "paper.yaml"), [
-        *our_overrides(encoder, epochs, args.seconds, precision, layout), f"runner.run_dir={tmp}",
-        f"runner.name=ours_{encoder}_e{epochs}_{precision}_{layout}"])
+        *our_overrides(encoder, epochs, args.seconds, precision, layout, compile), f"runner.run_dir={tmp}",
+        f"runner.name=ours_{encoder}_e{epochs}_{precision}_{layout}_{compile}"])
     result = train(cfg, progress=False)
     return measure_run(result.run_dir)
 
@@ -173,13 +185,18 @@ def main(argv: Sequence[str] = None) -> None:
     p.add_argument("--layouts", default="async", help="comma-separated: async (ours: a rollout worker and the "
                    "learner, one core each) and/or serial (collecting, then learning, on all cores; the peer's serial "
                    "mode runs too); on each side the best counts")
+    p.add_argument("--compile", default="off", help="comma-separated runner.compile modes of ours (off, default): "
+                   "each layout runs once per mode; the compilation (its first learner call) falls in the warm-up")
     p.add_argument("--no-append", action="store_true", help="do not append to benchmarks/RESULTS.md")
     args = p.parse_args(argv)
     encoders, precisions = args.encoders.split(","), args.precisions.split(",")
-    layouts = args.layouts.split(",")
+    layouts, compiles = args.layouts.split(","), args.compile.split(",")
     for name in layouts:
         if name not in OUR_LAYOUTS:
             p.error(f"--layouts: unknown {name!r}; valid: {', '.join(OUR_LAYOUTS)}")
+    for name in compiles:
+        if name not in OUR_COMPILE_MODES:
+            p.error(f"--compile: unknown {name!r}; valid: {', '.join(OUR_COMPILE_MODES)}")
     for name in encoders:
         if name not in PEER_ENCODERS:
             p.error(f"unknown encoder {name!r}; valid: {', '.join(PEER_ENCODERS)}")
@@ -215,10 +232,12 @@ def main(argv: Sequence[str] = None) -> None:
                 ours = {}  # precision -> layout -> result
                 for precision in precisions:
                     for layout in layouts:
-                        r = ours.setdefault(precision, {})[layout] = run_ours(args, encoder, epochs, precision,
-                                                                               layout, tmp)
-                        print(f"ours {PEER_ENCODERS[encoder]} e{epochs} {precision} {layout}: {r['sps']:,.0f} "
-                              f"agent-steps/s, {r['sps'] / peer['sps']:.2f}x the peer", flush=True)
+                        for mode in compiles:
+                            label = our_label(layout, mode)
+                            r = ours.setdefault(precision, {})[label] = run_ours(args, encoder, epochs, precision,
+                                                                                  layout, tmp, mode)
+                            print(f"ours {PEER_ENCODERS[encoder]} e{epochs} {precision} {label}: {r['sps']:,.0f} "
+                                  f"agent-steps/s, {r['sps'] / peer['sps']:.2f}x the peer", flush=True)
                 peer_cells = ", ".join(f"{label}: {r['sps']:,.0f}" for label, r in peers.items())
                 ours_cells = " | ".join(our_cell(by_layout, peer["sps"]) for by_layout in ours.values())
                 shares = ", ".join(f"{r['learner_share']:.2f}" for by_layout in ours.values()
@@ -228,9 +247,10 @@ def main(argv: Sequence[str] = None) -> None:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
+    labels = [f"{pr} {our_label(lo, m)}" for pr in precisions for lo in layouts for m in compiles]
     header = ("| encoder (peer / ours) | epochs | peer agent-steps/s (workers x swarms) | "
               + " | ".join(f"ours {pr} (vs best peer)" for pr in precisions)
-              + f" | our learner share ({', '.join(f'{pr} {lo}' for pr in precisions for lo in layouts)}) |\n"
+              + f" | our learner share ({', '.join(labels)}) |\n"
               + "|---|---|---|" + "---|" * len(precisions) + "---|")
     peer_version = subprocess.run(
         [args.peer_python, "-c", "import importlib.metadata as m; print(m.version('sample-factory'))"],

@@ -1,4 +1,6 @@
 """benchmarks.peer_throughput: the peer's log parser, and that both sides of a pair train the same settings."""
+import dataclasses
+
 import pytest
 
 from benchmarks import peer_throughput as pt
@@ -23,6 +25,20 @@ def test_peer_log_rate_skips_start_up_and_warm_up():
     assert r["sps"] == pytest.approx((170_000 - 100_000) / 70.0)
     assert r["agent_steps"] == 170_000
     assert r["first_trained_s"] == pytest.approx(30.0)
+
+
+def test_peer_log_rate_of_a_stepwise_count_runs_between_its_moves():
+    # the peer's serial mode: 16,384 frames per training iteration, the unchanged count reported in between
+    lines = [_report("10:00:00,000", 0), _report("10:00:40,000", 16_384)]  # first trained iteration: t0
+    lines += [_report(f"10:00:{s},000", 16_384) for s in (45, 50, 55)]
+    lines += [_report("10:01:10,000", 32_768)] + [_report(f"10:01:{s},000", 32_768) for s in (15, 20, 25)]
+    lines += [_report("10:01:40,000", 49_152), _report("10:01:45,000", 49_152), _report("10:01:50,000", 49_152)]
+    r = pt.parse_peer_log("\n".join(lines))
+    # moves at 40, 70 and 100 s; the window (from 40 + 0.3 x 60 s) holds the moves at 70 and 100 s
+    assert r["sps"] == pytest.approx(16_384 / 30.0)
+    assert r["first_trained_s"] == pytest.approx(40.0)
+    with pytest.raises(RuntimeError, match="1 reports with trained frames"):  # one move only: no rate
+        pt.parse_peer_log("\n".join(lines[:5]))
 
 
 def test_peer_log_without_training_is_an_error():
@@ -60,6 +76,7 @@ def test_both_sides_train_the_same_settings(encoder, epochs, tmp_path):
     (["--epochs", "1,five"], "--epochs and --peer-envs take comma-separated integers"),
     (["--peer-envs", "0"], "--epochs and --peer-envs must be >= 1"),
     (["--layouts", "async,parallel"], "--layouts: unknown 'parallel'; valid: async, serial"),
+    (["--compile", "off,max-autotune"], "--compile: unknown 'max-autotune'; valid: off, default"),
     ([], "--peer-python must exist and --peer-src must hold swarm_rl/"),
 ])
 def test_bad_options_are_usage_errors(option, message, capsys, tmp_path):
@@ -83,6 +100,18 @@ def test_layouts_change_only_the_process_layout(layout, serial, tmp_path):
                       pt.our_overrides("attention", 5, 60, "bf16", layout) + [f"runner.run_dir={tmp_path}"])
     assert cfg.runner.serial is serial
     assert cfg.algo == base.algo and cfg.model == base.model and cfg.env == base.env
+
+
+def test_compile_mode_changes_only_the_learner_compilation(tmp_path):
+    base = load_config(str(pt.ROOT / "configs" / "paper.yaml"),
+                       pt.our_overrides("attention", 5, 60, "bf16", "serial") + [f"runner.run_dir={tmp_path}"])
+    cfg = load_config(str(pt.ROOT / "configs" / "paper.yaml"), pt.our_overrides(
+        "attention", 5, 60, "bf16", "serial", "default") + [f"runner.run_dir={tmp_path}"])
+    assert base.runner.compile == "off" and cfg.runner.compile == "default"
+    assert dataclasses.replace(cfg.runner, compile="off") == base.runner
+    assert cfg.algo == base.algo and cfg.model == base.model and cfg.env == base.env
+    assert pt.our_label("serial", "off") == "serial"
+    assert pt.our_label("serial", "default") == "serial compiled (default)"
 
 
 def test_our_cell_names_layouts_and_rates_the_best():
