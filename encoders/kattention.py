@@ -12,11 +12,30 @@ samples' states, which is a bug we do not reproduce.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from quad_env.obs_layout import ObsLayout
 
 from .common import flat_inputs, masked_mean, masked_softmax, mlp, read_obs, self_input_dim, xavier_init_
+
+
+def _linear_of_concat(layer: nn.Linear, parts) -> torch.Tensor:
+    """``layer(cat(parts, -1))`` [B, K, out] for parts in concatenation order, each per item [B, K, n] or per
+    sample [B, n] (broadcast over the K items), without forming the concatenation: each part meets its own
+    columns of the weight, so a per-sample part costs B rows, not B x K (the bias rides on the first of them)."""
+    out, start, bias = None, 0, layer.bias
+    for part in parts:
+        w = layer.weight[:, start:start + part.shape[-1]]
+        start += part.shape[-1]
+        if part.dim() == 2:
+            y, bias = F.linear(part, w, bias).unsqueeze(1), None
+        else:
+            y = F.linear(part, w)
+        out = y if out is None else out + y
+    if start != layer.in_features:
+        raise ValueError(f"parts give {start} input features, the layer takes {layer.in_features}")
+    return out if bias is None else out + bias
 
 
 class KAttention(nn.Module):
@@ -31,11 +50,12 @@ class KAttention(nn.Module):
         self.join = mlp([2 * hidden, out_dim], activation)
 
     def forward(self, self_x: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        B, K, _ = nb.shape
-        pairs = torch.cat([self_x.unsqueeze(1).expand(B, K, self_x.shape[-1]), nb], dim=-1)  # [B, K, S+F]
-        e = self.embed(pairs)  # [B, K, H]
+        # embed(cat[s_i, o_j]) and score(cat[e_j, mean_k e_k]) have a per-sample half in their first layer: it is
+        # applied once per sample and broadcast over the K neighbours, not tiled K times (the same function and
+        # parameters; 12 % fewer multiply-adds at paper size and no [B, K, 2H] concatenation)
+        e = self.embed[1:](_linear_of_concat(self.embed[0], [self_x, nb]))  # [B, K, H]
         e_mean = masked_mean(e, mask, dim=1)  # [B, H]
-        scores = self.score(torch.cat([e, e_mean.unsqueeze(1).expand_as(e)], dim=-1)).squeeze(-1)  # [B, K]
+        scores = self.score[1:](_linear_of_concat(self.score[0], [e, e_mean])).squeeze(-1)  # [B, K]
         weights = masked_softmax(scores, mask)  # [B, K]; all zero without neighbours
         neighborhood = (weights.unsqueeze(-1) * self.value(e)).sum(dim=1)  # [B, H]
         return self.join(torch.cat([self.self_mlp(self_x), neighborhood], dim=-1))  # [B, out_dim]

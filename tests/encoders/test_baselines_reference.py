@@ -1,5 +1,6 @@
 """K-Attention and DeepSets against per-sample numpy references (float64)."""
 import numpy as np
+import pytest
 import torch
 
 import encoders
@@ -58,3 +59,25 @@ def test_deepsets_matches_numpy():
         pooled = np.mean([dense(P, "neighbor_mlp", o_j) for o_j in nb], 0) if len(nb) else np.zeros(8)
         expected = dense(P, "join", np.concatenate([dense(P, "self_mlp", own), pooled]))
         assert np.abs(out[b] - expected).max() < 1e-12
+
+
+def test_linear_of_concat_is_the_layer_on_the_concatenation():
+    from encoders.kattention import _linear_of_concat
+
+    torch.manual_seed(0)
+    layer = torch.nn.Linear(3 + 5 + 2, 4).double()
+    per_item, per_sample, other = (torch.randn(6, 7, 3, dtype=torch.float64), torch.randn(6, 5, dtype=torch.float64),
+                                   torch.randn(6, 7, 2, dtype=torch.float64))
+    for parts in ([per_item, per_sample, other], [per_sample, per_item, other]):
+        ins = [p.clone().requires_grad_() for p in parts]
+        tiled = [x if x.dim() == 3 else x.unsqueeze(1).expand(-1, 7, -1) for x in ins]
+        expected = layer(torch.cat(tiled, -1))
+        got = _linear_of_concat(layer, ins)
+        assert got.shape == (6, 7, 4) and torch.allclose(got, expected, atol=1e-13, rtol=0)
+        g = torch.randn(6, 7, 4, dtype=torch.float64)
+        want = torch.autograd.grad(expected, ins + list(layer.parameters()), g)
+        have = torch.autograd.grad(got, ins + list(layer.parameters()), g)
+        for a, b in zip(have, want):
+            assert torch.allclose(a, b, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="parts give 8 input features, the layer takes 10"):
+        _linear_of_concat(layer, [per_item, per_sample])
