@@ -194,8 +194,10 @@ class RunnerConfig:
     (fuses the many small element-wise ops into fewer kernels) or "reduce-overhead" (also replays them as CUDA
     graphs). Meant for a CUDA learner, which is bound by kernel launches at these batch sizes (RESULTS.md,
     gpu_check); its gain there is not measured yet (``benchmarks/gpu_check.sh`` with ``LEARNER_COMPILE``). Costs
-    compile time at start (about a minute on a CPU core for the paper's Graphormer) and gained nothing on a CPU
-    learner, which is bound by its matmuls. Checkpoints and exported policies are the same either way."""
+    compile time at start (20-60 s on a CPU; inductor needs a C++ compiler there). On a CPU it gained nothing for the
+    paper's Graphormer (bound by its matmuls) and 1.13x end to end for K-Attention in bf16 at batch 1024, where the
+    element-wise work between the matmuls is a third of the learner's time (RESULTS.md, "peer_throughput",
+    2026-12-07). Checkpoints and exported policies are the same either way."""
     inference_precision: str = "auto"
     """The rollout workers' inference precision: "fp32", "bf16" or "auto", the same rule as ``precision``,
     resolved by each worker on its own CPU."""
