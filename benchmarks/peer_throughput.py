@@ -37,6 +37,7 @@ from typing import Dict, List, Sequence
 import torch
 
 from benchmarks.common import ROOT, load_average, publish, section_header, steady_window
+from swarm_appo.config import COMPILE_MODES
 
 PEER_ENCODERS = {"attention": "kattention", "mean_embed": "deepsets"}  # peer name -> ours
 AGENTS, ROLLOUT, BATCH = 8, 128, 1024  # matched on both sides
@@ -71,7 +72,8 @@ def peer_command(python: str, encoder: str, epochs: int, seconds: float, train_d
 
 
 OUR_LAYOUTS = {"async": "runner.serial=false", "serial": "runner.serial=true"}  # our process layouts on the cores
-OUR_COMPILE_MODES = ("off", "default")  # runner.compile on a CPU ("reduce-overhead" is CUDA graphs)
+# runner.compile on a CPU: the config's modes without "reduce-overhead" (CUDA graphs)
+OUR_COMPILE_MODES = tuple(m for m in COMPILE_MODES if m != "reduce-overhead")
 
 
 def our_overrides(encoder: str, epochs: int, seconds: float, precision: str, layout: str = "async",
