@@ -375,3 +375,15 @@ def test_a_cuda_device_that_is_not_there_fails_before_the_run_dir(tmp_path, monk
     with pytest.raises(ConfigError, match=r"runner\.device=cuda:0"):
         train(cfg, progress=False)
     assert not any(tmp_path.iterdir())
+
+
+def test_hour_config_is_the_quality_recipe_with_half_the_clip_in_serial_mode():
+    from swarm_appo.config import config_to_dict
+    quality = config_to_dict(load_config("configs/table1/quality.yaml"))
+    hour = config_to_dict(load_config("configs/table1/hour.yaml"))
+    changed = {f"{section}.{k}" for section in ("env", "model", "algo") for k in hour[section]
+               if hour[section][k] != quality[section][k]}
+    assert changed == {"algo.ppo_clip_ratio"}
+    assert hour["algo"]["ppo_clip_ratio"] == 0.1
+    assert hour["runner"]["serial"] is True and hour["runner"]["total_agent_steps"] == 40_000_000
+    assert hour["algo"]["lr_schedule"] == "linear"  # the decay reaches 0 at the 40-M budget
