@@ -283,14 +283,19 @@ def test_rmappo_row_is_the_paper_config_with_rmappos_network():
                                                                               "critic"}
 
 
+def _trained_keys_that_differ(base: dict, other: dict) -> set:
+    """"section.key" of every env/model/algo setting (what shapes training) where two config dicts differ."""
+    return {f"{section}.{k}" for section in ("env", "model", "algo") for k in other[section]
+            if other[section][k] != base[section][k]}
+
+
 def test_quality_config_is_the_table1_recipe_with_what_moved_the_quality_goal():
     from swarm_appo.config import config_to_dict
     recipe = config_to_dict(load_config("configs/table1/recipe.yaml"))
     quality = config_to_dict(load_config("configs/table1/quality.yaml"))
-    changed = {f"{section}.{k}" for section in ("env", "model", "algo") for k in quality[section]
-               if quality[section][k] != recipe[section][k]}
-    assert changed == {"env.replay_prob", "model.symmetry", "algo.lr", "algo.batch_size", "algo.num_epochs",
-                       "algo.lr_schedule", "algo.weight_ema"}  # the last a read-out, not a training change
+    assert _trained_keys_that_differ(recipe, quality) == {
+        "env.replay_prob", "model.symmetry", "algo.lr", "algo.batch_size", "algo.num_epochs", "algo.lr_schedule",
+        "algo.weight_ema"}  # the last a read-out, not a training change
     assert (quality["algo"]["lr"], quality["algo"]["batch_size"], quality["algo"]["num_epochs"]) == (1e-4, 4096, 5)
 
 
@@ -381,9 +386,7 @@ def test_hour_config_is_the_quality_recipe_with_half_the_clip_in_serial_mode():
     from swarm_appo.config import config_to_dict
     quality = config_to_dict(load_config("configs/table1/quality.yaml"))
     hour = config_to_dict(load_config("configs/table1/hour.yaml"))
-    changed = {f"{section}.{k}" for section in ("env", "model", "algo") for k in hour[section]
-               if hour[section][k] != quality[section][k]}
-    assert changed == {"algo.ppo_clip_ratio"}
+    assert _trained_keys_that_differ(quality, hour) == {"algo.ppo_clip_ratio"}
     assert hour["algo"]["ppo_clip_ratio"] == 0.1
     assert hour["runner"]["serial"] is True and hour["runner"]["total_agent_steps"] == 40_000_000
     assert hour["algo"]["lr_schedule"] == "linear"  # the decay reaches 0 at the 40-M budget
