@@ -121,7 +121,9 @@ class AlgoConfig:
     num_epochs: int = 5
     """Passes over each collected batch (PPO epochs)."""
     ppo_clip_ratio: float = 0.2
-    """PPO clipping range epsilon of the probability ratio: [1 - eps, 1 + eps]."""
+    """PPO clipping range epsilon of the probability ratio: [1 - eps, 1 + eps]. 0.2 is PPO's usual value and the
+    quickstart's; Sample Factory's default, which the paper's training commands keep, is 0.1 (configs/paper.yaml,
+    configs/table1/quality.yaml)."""
     value_loss_coeff: float = 0.5
     """Weight of the value loss, mean squared error to the V-trace targets."""
     entropy_coeff: float = 0.0
