@@ -46,10 +46,19 @@ class FrameInput(nn.Module):
                 mat_idx += range(f.start + off, f.stop + off)
         self.register_buffer("vec_idx", torch.tensor(vec_idx, dtype=torch.long), persistent=False)
         self.register_buffer("mat_idx", torch.tensor(mat_idx, dtype=torch.long), persistent=False)
-        # Output column c reads column perm[c] of [obs | rotated vectors | rotated matrices]: one gather, no
-        # in-place index writes (which the ONNX exporter mistranslates).
+        # Every 3-vector the frame acts on, as one [B, V, 3] gather: the world vectors, then each rotation's
+        # columns (F^T M is F^T applied to every column of M; M is stored row-major, so column k of the block at
+        # m is entries m + k, m + 3 + k, m + 6 + k). One batched 3x3 product then rotates them all.
+        triples = [vec_idx[i:i + 3] for i in range(0, len(vec_idx), 3)]
+        for m in range(0, len(mat_idx), 9):
+            triples += [[mat_idx[m + 3 * r + k] for r in range(3)] for k in range(3)]
+        self.num_triples = len(triples)
+        triple_idx = [c for t in triples for c in t]
+        self.register_buffer("triple_idx", torch.tensor(triple_idx, dtype=torch.long), persistent=False)
+        # Output column c reads column perm[c] of [obs | rotated triples]: one gather, no in-place index writes
+        # (which the ONNX exporter mistranslates).
         perm = list(range(layout.dim))
-        for k, c in enumerate(vec_idx + mat_idx):
+        for k, c in enumerate(triple_idx):
             perm[c] = layout.dim + k
         self.register_buffer("perm", torch.tensor(perm, dtype=torch.long), persistent=False)
 
@@ -61,11 +70,9 @@ class FrameInput(nn.Module):
     def forward(self, obs: torch.Tensor, F: Optional[torch.Tensor] = None) -> torch.Tensor:
         B = obs.shape[0]
         F = self.own_frame(obs) if F is None else F  # [B, 3, 3]
-        v = obs[:, self.vec_idx].reshape(B, -1, 3)  # [B, V, 3]
-        v_local = (v @ F).reshape(B, -1)  # rows v^T F = (F^T v)^T
-        M = obs[:, self.mat_idx].reshape(B, -1, 3, 3)  # [B, Q, 3, 3]
-        m_local = (F.transpose(1, 2).unsqueeze(1) @ M).reshape(B, -1)  # F^T M
-        return torch.cat([obs, v_local, m_local], dim=1)[:, self.perm]
+        v = obs[:, self.triple_idx].reshape(B, self.num_triples, 3)  # [B, V, 3] vectors and rotation columns
+        v_local = torch.bmm(v, F).reshape(B, -1)  # rows v^T F = (F^T v)^T
+        return torch.cat([obs, v_local], dim=1)[:, self.perm]
 
 
 def BodyFrameInput(layout: ObsLayout) -> FrameInput:

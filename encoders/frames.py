@@ -84,8 +84,12 @@ def typed_to_world(out: torch.Tensor, R: torch.Tensor, num_vectors: int) -> torc
         return out
     num_scalars = out.shape[-1] - 3 * num_vectors
     scalars, vectors = out[..., :num_scalars], out[..., num_scalars:]
-    vectors = from_frame(vectors.reshape(*out.shape[:-1], num_vectors, 3), R.unsqueeze(-3))
-    return torch.cat([scalars, vectors.flatten(-2)], dim=-1)
+    if R.shape[:-2] == out.shape[:-1]:  # one frame per row (every caller): a batched product, no broadcast copy
+        rows = vectors.reshape(-1, num_vectors, 3)  # [B', V, 3]
+        vectors = torch.bmm(rows, R.reshape(-1, 3, 3).transpose(1, 2))  # rows v^T R^T = (R v)^T
+    else:
+        vectors = from_frame(vectors.reshape(*out.shape[:-1], num_vectors, 3), R.unsqueeze(-3))
+    return torch.cat([scalars, vectors.reshape(*out.shape[:-1], 3 * num_vectors)], dim=-1)
 
 
 # ----------------------------------------------------------------------------------------------- symmetry groups

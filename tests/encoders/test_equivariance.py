@@ -71,6 +71,24 @@ def test_canonicalize_matches_numpy():
     assert np.allclose(back[:, 0], 0.0) and np.allclose(back[0, 4:7], Rn[0] @ np.array([4.0, 5.0, 6.0]))
 
 
+def test_typed_to_world_against_numpy_per_row_and_broadcast_frames():
+    """Scalars pass, every 3-vector of every row turns by its own frame: one frame per row (the batched product)
+    and one frame shared along a leading axis (the broadcast path) against a float64 numpy reference."""
+    rng = np.random.default_rng(3)
+    S, V = 2, 3
+    out = rng.normal(size=(4, 5, S + 3 * V))
+    R = random_rotation(rng, (4, 5))
+    for frames in (R, R[:, :1]):  # [4, 5, 3, 3] per row, [4, 1, 3, 3] shared along axis 1
+        back = typed_to_world(torch.as_tensor(out), torch.as_tensor(frames), V).numpy()
+        Rb = np.broadcast_to(frames, (4, 5, 3, 3))
+        vectors = out[..., S:].reshape(4, 5, V, 3)
+        expected = np.einsum("abij,abvj->abvi", Rb, vectors).reshape(4, 5, 3 * V)
+        assert np.allclose(back[..., :S], out[..., :S], atol=0, rtol=0)
+        assert np.allclose(back[..., S:], expected, atol=1e-12)
+    assert not np.allclose(typed_to_world(torch.as_tensor(out), torch.as_tensor(R), V).numpy()[..., S:],
+                           out[..., S:])  # the frames are not the identity: the check above can fail
+
+
 @pytest.mark.parametrize("layout", LAYOUTS, ids=repr)
 @pytest.mark.parametrize("name", SE3)
 def test_se3_encoders_are_equivariant(name, layout):
