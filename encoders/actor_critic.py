@@ -140,6 +140,10 @@ class ActorCritic(nn.Module):
         self.body_frame = BodyFrameInput(layout) if body_frame_obs else None
         self.actor_encoder = make_encoder(encoder, layout, symmetry, size, **encoder_kwargs)
         self.critic_encoder = None if share_encoder else make_encoder(encoder, layout, symmetry, size, **encoder_kwargs)
+        # separate actor and critic encoders canonicalized alike read one copy of the frame-mapped observation
+        self.one_frame_map = (isinstance(self.actor_encoder, Canonicalized)
+                              and isinstance(self.critic_encoder, Canonicalized)
+                              and self.actor_encoder.symmetry == self.critic_encoder.symmetry)
         out_dim = self.actor_encoder.out_dim
         self.central = critic == "central"
         # central critic: phi(own-state block) per drone of the swarm, averaged; its width follows the heads'
@@ -220,14 +224,17 @@ class ActorCritic(nn.Module):
         dtype = self.log_std.dtype
         shared = self.critic_encoder is None
         mean = value = None
-        if actor or (critic and shared) or self.actor_core is not None:
-            a = self.actor_encoder(x)  # [B, out]
+        run_actor = actor or (critic and shared) or self.actor_core is not None
+        run_critic = critic or self.critic_core is not None
+        canonical = self.actor_encoder.canonical(x) if self.one_frame_map and run_actor and run_critic else None
+        if run_actor:
+            a = self.actor_encoder(x) if canonical is None else self.actor_encoder(x, canonical)  # [B, out]
             if self.actor_core is not None:
                 a, a_state = self.actor_core(a, a_state)
             if actor:
                 mean = self.actor_head(a).to(dtype)
-        if critic or self.critic_core is not None:
-            c = a if shared else self.critic_encoder(x)
+        if run_critic:
+            c = a if shared else self.critic_encoder(x) if canonical is None else self.critic_encoder(x, canonical)
             if self.critic_core is not None:
                 c, c_state = self.critic_core(c, c_state)
             if critic:

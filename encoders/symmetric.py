@@ -11,7 +11,7 @@ encoders whose neighbour set is read from drone i's point of view only (DeepSets
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 from torch import nn
@@ -43,7 +43,15 @@ class Canonicalized(nn.Module):
         self.out_dim = inner.out_dim
         self.to_local = FrameInput(layout, symmetry, keep_own_rot=False)
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def canonical(self, obs: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(obs in drone i's frame [B, D], the frame F_i [B, 3, 3])``: what ``forward`` feeds ``inner``; it has
+        no weights, so two ``Canonicalized`` of one layout and symmetry can share it (the actor and the critic)."""
         F = self.to_local.own_frame(obs)  # [B, 3, 3] drone i's frame
-        out = self.inner(self.to_local(obs, F))  # [B, out_dim] in drone i's frame
+        return self.to_local(obs, F), F
+
+    def forward(self, obs: torch.Tensor, canonical: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+                ) -> torch.Tensor:
+        """``obs [B, D] -> [B, out_dim]`` in world axes; ``canonical``: ``self.canonical(obs)`` if already made."""
+        local, F = self.canonical(obs) if canonical is None else canonical
+        out = self.inner(local)  # [B, out_dim] in drone i's frame
         return typed_to_world(out, F, self.out_vectors)

@@ -118,6 +118,35 @@ def test_actor_critic_with_symmetry_trains_and_is_not_equivariant_as_a_whole(sym
     assert all(p.grad is not None for p in model.critic_encoder.parameters())
 
 
+@pytest.mark.parametrize("symmetry", ["se3", "yaw"])
+def test_actor_and_critic_share_one_frame_map_and_compute_the_same(symmetry):
+    """Separate actor and critic encoders map the observation into drone i's frame once per step, not twice,
+    and the outputs and gradients equal those of each encoder mapping it itself."""
+    layout = ObsLayout(3)
+    torch.manual_seed(0)
+    model = encoders.ActorCritic(layout, "deepsets", symmetry=symmetry, size="small").double()
+    calls = []
+    for enc in (model.actor_encoder, model.critic_encoder):
+        enc.to_local.register_forward_hook(lambda *_: calls.append(1))
+    obs = batch(layout)
+
+    def outputs_and_grads():
+        model.zero_grad()
+        mean, _, value = model(obs)
+        (mean.sum() + value.sum()).backward()
+        return [mean.detach(), value.detach()] + [p.grad.clone() for p in model.parameters() if p.grad is not None]
+
+    assert model.one_frame_map
+    shared = outputs_and_grads()
+    assert len(calls) == 1  # one map for both
+    model.one_frame_map = False  # each encoder maps the observation itself
+    separate = outputs_and_grads()
+    assert len(calls) == 3
+    assert len(shared) == len(separate) and all(torch.equal(a, b) for a, b in zip(shared, separate))
+    assert not encoders.ActorCritic(layout, "deepsets", symmetry="none", size="small").one_frame_map
+    assert not encoders.ActorCritic(layout, "deepsets", symmetry=symmetry, share_encoder=True).one_frame_map
+
+
 def test_checkpoints_from_before_the_symmetry_option_load():
     """se3_kattention weights were saved at <encoder>.net.* before the canonicalization became a wrapper."""
     layout = ObsLayout(3)
