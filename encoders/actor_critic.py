@@ -187,6 +187,11 @@ class ActorCritic(nn.Module):
             obs = self.body_frame(obs)
         return obs if self.obs_norm is None else self.obs_norm(obs)
 
+    @staticmethod
+    def _encode(encoder: nn.Module, x: torch.Tensor, canonical) -> torch.Tensor:
+        """``encoder(x)``, or from the frame-mapped copy ``canonical`` (``Canonicalized.canonical``) if given."""
+        return encoder(x) if canonical is None else encoder(x, canonical)
+
     def _swarm_features(self, features: torch.Tensor, swarm_obs: Optional[torch.Tensor]) -> torch.Tensor:
         """The critic head's input: ``features`` [B, F], with a central critic followed by the swarm's pooled
         state."""
@@ -228,13 +233,13 @@ class ActorCritic(nn.Module):
         run_critic = critic or self.critic_core is not None
         canonical = self.actor_encoder.canonical(x) if self.one_frame_map and run_actor and run_critic else None
         if run_actor:
-            a = self.actor_encoder(x) if canonical is None else self.actor_encoder(x, canonical)  # [B, out]
+            a = self._encode(self.actor_encoder, x, canonical)  # [B, out]
             if self.actor_core is not None:
                 a, a_state = self.actor_core(a, a_state)
             if actor:
                 mean = self.actor_head(a).to(dtype)
         if run_critic:
-            c = a if shared else self.critic_encoder(x) if canonical is None else self.critic_encoder(x, canonical)
+            c = a if shared else self._encode(self.critic_encoder, x, canonical)
             if self.critic_core is not None:
                 c, c_state = self.critic_core(c, c_state)
             if critic:

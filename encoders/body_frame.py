@@ -44,8 +44,6 @@ class FrameInput(nn.Module):
                 vec_idx += range(f.start + off, f.stop + off)
             elif f.kind == "rotation" and not (keep_own_rot and f.group == "self" and f.name == "rot"):
                 mat_idx += range(f.start + off, f.stop + off)
-        self.register_buffer("vec_idx", torch.tensor(vec_idx, dtype=torch.long), persistent=False)
-        self.register_buffer("mat_idx", torch.tensor(mat_idx, dtype=torch.long), persistent=False)
         # Every 3-vector the frame acts on, as one [B, V, 3] gather: the world vectors, then each rotation's
         # columns (F^T M is F^T applied to every column of M; M is stored row-major, so column k of the block at
         # m is entries m + k, m + 3 + k, m + 6 + k). One batched 3x3 product then rotates them all.
