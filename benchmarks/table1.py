@@ -368,7 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a config override applied to every row (repeatable)")
     p.add_argument("--compare", default=None, metavar="KEY=V1,V2",
                    help="one config key to compare: every row is trained once per value (e.g. runner.precision)")
-    p.add_argument("--figures", default=str(ROOT / "benchmarks" / "figures"), help="where the PNGs go")
+    p.add_argument("--figures", default=None,
+                   help="where the PNGs go (default: benchmarks/figures, or <out>/figures with --no-results, so that a "
+                        "report kept out of RESULTS.md leaves no figure in the repository either)")
     p.add_argument("--no-results", action="store_true", help="do not append to benchmarks/RESULTS.md")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--report-only", action="store_true", help="train nothing: table and curves of what exists")
@@ -380,6 +382,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="slim copies of finished runs (benchmarks.table1_archive): runs missing from --out are "
                         "restored from DIR if their recipe matches, and every evaluated run is copied into DIR")
     return p
+
+
+def figures_dir(args, out: Path) -> Path:
+    """``--figures``, else benchmarks/figures beside RESULTS.md, or the experiment's folder with ``--no-results``."""
+    if args.figures:
+        return Path(args.figures)
+    return out / "figures" if args.no_results else ROOT / "benchmarks" / "figures"
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -486,7 +495,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                             f"the run's agent steps; M steps to {REACH_M:g} m = where the curve, smoothed as in the "
                             f"figure, first falls below {REACH_M:g} m, a run that never does counted at its last "
                             f"step)\n\n" + speed)
-        fig = plot_curves(curves, Path(args.figures) / figure_name(out.name, sc, args.agent_steps, rows, seeds),
+        fig = plot_curves(curves, figures_dir(args, out) / figure_name(out.name, sc, args.agent_steps, rows, seeds),
                           f"training curves, {sc} (training episodes, with the training aids; running mean over "
                           f"{SMOOTH_RECORDS} iterations); mean over seeds, band min..max")
         if fig is not None:

@@ -206,3 +206,11 @@ def test_select_reports_the_checkpoint_chosen_on_validation_episodes(tmp_path, o
     assert "final policy: each run's last checkpoint" in (tmp_path / "exp" / "table1.md").read_text()
     with pytest.raises(SystemExit):
         run(tmp_path, "--rows", "deepsets/se3", "--seeds", "0", "--select", "--select-episodes", "0")
+
+
+def test_figures_stay_out_of_the_repository_when_results_do(tmp_path):
+    out = tmp_path / "exp"
+    parse = table1.build_parser().parse_args
+    assert table1.figures_dir(parse(["--no-results"]), out) == out / "figures"
+    assert table1.figures_dir(parse([]), out) == table1.ROOT / "benchmarks" / "figures"
+    assert table1.figures_dir(parse(["--no-results", "--figures", str(tmp_path / "f")]), out) == tmp_path / "f"
