@@ -126,6 +126,8 @@ def parse_args(argv: Optional[Sequence[str]]):
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error("--repeats must be >= 1")
+    if not Path(args.config).is_file() and (ROOT / args.config).is_file():
+        args.config = str(ROOT / args.config)  # a path relative to the project, run from elsewhere
     if not Path(args.config).is_file():
         p.error(f"--config: no file {args.config}")
     bad = [s for s in args.set if "=" not in s]
@@ -162,8 +164,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 if tree != ROOT:
                     subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=ROOT,
                                    capture_output=True)
-    head_name = head or f"the working tree ({git('rev-parse', '--short', 'HEAD')}"
-    head_name += "" if head else (" + uncommitted changes)" if git("status", "--porcelain") else ")")
+    if head:
+        head_name = head
+    else:
+        dirty = " + uncommitted changes" if git("status", "--porcelain") else ""
+        head_name = f"the working tree ({git('rev-parse', '--short', 'HEAD')}{dirty})"
     lines = section_header("commit_ab", started, argv, (), load_before)
     lines += [f"- base: {base}; head: {head_name}; config: {args.config} {' '.join(args.set)}; "
               f"{int(args.agent_steps):,} agent steps per run, seed {args.seed}, "
