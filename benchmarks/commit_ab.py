@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import statistics
 import subprocess
 import sys
@@ -29,6 +28,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 from benchmarks.common import ROOT, load_average, publish, section_header, steady_window
+from benchmarks.table1 import read_metrics
 
 LOSS_PREFIX = "losses/"
 
@@ -59,10 +59,6 @@ def check_imports_from(tree: Path, python: str = sys.executable) -> None:
     if outside:
         raise RuntimeError(f"in {tree} Python imports {outside} from elsewhere: the comparison would run one code "
                            f"twice (an installed, non-editable copy shadows the tree?)")
-
-
-def run_metrics(path: Path) -> List[Dict[str, float]]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def speed(records: Sequence[Dict[str, float]]) -> Dict[str, float]:
@@ -96,18 +92,17 @@ def compare_losses(a: Sequence[tuple], b: Sequence[tuple]) -> str:
 
 
 def train(tree: Path, run_root: Path, name: str, args) -> Dict[str, float]:
-    cmd = [sys.executable, "-m", "launchers.local", "--config", str(Path(args.config).resolve()), *args.set,
+    serial = ["runner.serial=true"] if args.serial else []  # before --set, which may override it
+    cmd = [sys.executable, "-m", "launchers.local", "--config", str(Path(args.config).resolve()), *serial, *args.set,
            f"runner.total_agent_steps={int(args.agent_steps)}", f"runner.seed={args.seed}",
            f"runner.run_dir={run_root}", f"runner.name={name}", "runner.final_eval_episodes=0",
            "wandb.mode=disabled", "--no-progress"]
-    if args.serial:
-        cmd.insert(5, "runner.serial=true")
     start = time.perf_counter()
     done = subprocess.run(cmd, cwd=tree, capture_output=True, text=True)
     wall = time.perf_counter() - start
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} (in {tree}) failed ({done.returncode}):\n{done.stderr[-2000:]}")
-    records = run_metrics(run_root / name / "metrics.jsonl")
+    records = read_metrics(run_root / name)
     return {**speed(records), "wall_s": wall, "losses": loss_trace(records)}
 
 
@@ -173,12 +168,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     lines += [f"- base: {base}; head: {head_name}; config: {args.config} {' '.join(args.set)}; "
               f"{int(args.agent_steps):,} agent steps per run, seed {args.seed}, "
               f"{'serial' if args.serial else 'asynchronous'}; runs alternate base, head", "",
-              "| run | agent-steps/s (median after warm-up) | learner share | wall (s) |", "|---|---:|---:|---:|"]
+              "| run | agent steps | agent-steps/s (median after warm-up) | learner share | wall (s) |",
+              "|---|---:|---:|---:|---:|"]
     for i in range(args.repeats):
         for label in ("base", "head"):
             r = runs[label][i]
-            lines.append(f"| {label} {i + 1} | {r['agent_steps_per_s']:,.0f} | {r['learner_share']:.3f} | "
-                         f"{r['wall_s']:.0f} |")
+            lines.append(f"| {label} {i + 1} | {r['agent_steps']:,.0f} | {r['agent_steps_per_s']:,.0f} | "
+                         f"{r['learner_share']:.3f} | {r['wall_s']:.0f} |")
     mean = {k: statistics.mean(r["agent_steps_per_s"] for r in v) for k, v in runs.items()}
     losses = compare_losses(runs["base"][0]["losses"], runs["head"][0]["losses"])
     lines += ["", f"- head / base, mean agent-steps/s: **{mean['head'] / mean['base']:.2f}x** "
